@@ -21,7 +21,9 @@ Rows
    fast numba engine when numba is installed (the row says which engine ran; the pure-Python
    one is about 7x slower on these frames).  Both are checked against the twin's truth
    (visible markers found within 1 px).  Target: bsipipe at least 30x trackpy's frames per
-   second.
+   second.  The automatic row's note also gives the time of the whole-frame top-hat and
+   smoothing alone (:func:`bsipipe.imaging.detect.smoothed_tophat`), the part of whole-frame
+   detection no candidate logic can skip, against the 30x budget.
 2. **whole command vs decode**: ``bsipipe track --view cam1=.. --view cam2=.. --seeds ..
    --calibration .. --fps 4 -o ..`` (tracking, triangulation, the loop, CSVs, figures) and a
    child that only decodes the same frames with :func:`bsipipe.io.images.iter_frames`
@@ -29,7 +31,9 @@ Rows
    200 frames per view and (not with ``--quick``) 2,000.  Target: command <= 1.5x decode, in
    CPU time (user + system): the two run at different moments, and on a loaded machine
    their wall times swing with the load; CPU time is what an idle machine's wall time
-   would be for these single-threaded programs.
+   would be for these single-threaded programs.  From the two lengths the CPU time is split
+   into a fixed part (start-up, imports, the loop, figures) and a per-frame part, for the
+   command and for decoding.
 3. **peak memory** of ``bsipipe track`` at 200 and 2,000 frames per view: the child's own
    high-water mark (``VmHWM``, :func:`bench.common.run_child`).  Target: flat within 20 %,
    and under 1 GiB at 2,000.
@@ -161,6 +165,19 @@ def _bsipipe_track(frames: dict, seeds, auto: bool):
     return out
 
 
+def _whole_frame_filtering(frames: dict) -> int:
+    """The smoothed top-hat of every frame (:func:`bsipipe.imaging.detect.smoothed_tophat`),
+    as automatic detection computes it: the floor of whole-frame detection."""
+    from bsipipe.imaging.detect import DetectionSettings, smoothed_tophat
+    st = DetectionSettings()
+    n = 0
+    for v in VIEWS:
+        for img in frames[v]:
+            smoothed_tophat(img, DIAMETER_PX, "dark", st.se_px(DIAMETER_PX), st.smooth_px(DIAMETER_PX))
+            n += 1
+    return n
+
+
 def _trackpy_minmass(tp, img, seeds_xy) -> float:
     from scipy.spatial import cKDTree
     f = tp.locate(img, TP_DIAMETER, invert=True, minmass=0)
@@ -211,6 +228,13 @@ def bench_detect_track(src: Path, quick: bool, say=print) -> tuple[list[Row], di
         f"{100 * acc['auto']:.1f} %)")
     det["bsipipe"] = {"seeded": {"time": t_seed, "fps": fps_seed, "found_1px": acc["seeded"]},
                       "auto": {"time": t_auto, "fps": fps_auto, "found_1px": acc["auto"]}}
+    # where the automatic mode's time goes: the whole-frame filtering every frame needs
+    # (the top-hat with a disk and its Gaussian smoothing, two OpenCV calls) against the rest
+    t_filter, _ = timed(lambda: _whole_frame_filtering(frames), repeats=1 if quick else 2)
+    det["bsipipe"]["auto_whole_frame_filtering"] = {"time": t_filter, "ms_per_frame": 1e3 * t_filter["min_s"] / n_total,
+                                                   "fraction_of_auto": t_filter["min_s"] / t_auto["min_s"]}
+    say(f"  of which whole-frame top-hat + smoothing: {1e3 * t_filter['min_s'] / n_total:.2f} ms/frame "
+        f"({100 * t_filter['min_s'] / t_auto['min_s']:.0f} % of the automatic mode's time)")
     if not quick:
         # the seeded tracker's steady state: every frame of the sequence (the per-view set-up,
         # field of view and seed refinement, weighs on 50 frames)
@@ -262,10 +286,18 @@ def bench_detect_track(src: Path, quick: bool, say=print) -> tuple[list[Row], di
     for name, fps, a, t in (("seeded", fps_seed, acc["seeded"], t_seed), ("no seeds", fps_auto, acc["auto"], t_auto)):
         r = fps / fps_tp
         cpu = t_tp["cpu_min_s"] / t["cpu_min_s"]
+        note = common.format(acc=100 * a, cpu=cpu)
+        if name == "no seeds":
+            fl = det["bsipipe"]["auto_whole_frame_filtering"]
+            budget_ms = 1e3 * t_tp["min_s"] / n_total / TARGET_SPEEDUP
+            budget_cpu_ms = 1e3 * t_tp["cpu_min_s"] / n_total / TARGET_SPEEDUP
+            note += (f"; the whole-frame top-hat + smoothing alone take {fl['ms_per_frame']:.2f} ms/frame "
+                     f"({100 * fl['fraction_of_auto']:.0f} % of this mode's time) against a 30x budget of "
+                     f"{budget_ms:.2f} ms/frame (CPU {1e3 * fl['time']['cpu_min_s'] / n_total:.2f} against "
+                     f"{budget_cpu_ms:.2f} ms/frame)")
         rows.append(Row(f"track {name}: detect+track vs trackpy", f"{fps:.1f} frames/s",
                         f"trackpy {fps_tp:.2f} frames/s", r, "bsipipe/peer fps", ">= 30x", r >= TARGET_SPEEDUP,
-                        note=common.format(acc=100 * a, cpu=cpu),
-                        values={"bsipipe_fps": fps, "peer_fps": fps_tp, "cpu_ratio": cpu}))
+                        note=note, values={"bsipipe_fps": fps, "peer_fps": fps_tp, "cpu_ratio": cpu}))
     return rows, det
 
 
@@ -344,6 +376,22 @@ def bench_command(src: Path, quick: bool, say=print) -> tuple[list[Row], dict]:
     if rows and cmd2d.ok:
         rows[0].note += f"; without --calibration (2-D only) CPU {fmt_s(cmd2d.cpu_s)}"
 
+    # where the command's time goes: CPU = fixed (start-up, imports, loop, figures) + per frame,
+    # from the two lengths (decode likewise); the per-frame parts are what 2,000 frames approach
+    if not quick and all(str(n) in det and det[str(n)]["command"]["exit"] == 0 for n in (N_FRAMES, N_LONG)):
+        per, fixed = {}, {}
+        for k in ("command", "decode"):
+            c0, c1 = det[str(N_FRAMES)][k]["cpu_s"], det[str(N_LONG)][k]["cpu_s"]
+            per[k] = (c1 - c0) / (len(VIEWS) * (N_LONG - N_FRAMES))
+            fixed[k] = c0 - per[k] * len(VIEWS) * N_FRAMES
+        det["cpu_split"] = {"per_frame_s": per, "fixed_s": fixed}
+        say(f"  CPU split: command {1e3 * per['command']:.2f} ms/frame + {fixed['command']:.2f} s fixed; decode "
+            f"{1e3 * per['decode']:.2f} ms/frame + {fixed['decode']:.2f} s fixed; tracking adds "
+            f"{1e3 * (per['command'] - per['decode']):.2f} ms/frame ({per['command'] / per['decode']:.2f}x decode "
+            f"per frame)")
+        rows[-1].note += (f"; CPU split from the two lengths: command {1e3 * per['command']:.2f} ms/frame + "
+                          f"{fixed['command']:.1f} s fixed, decode {1e3 * per['decode']:.2f} ms/frame + "
+                          f"{fixed['decode']:.1f} s fixed (per-frame ratio {per['command'] / per['decode']:.2f}x)")
     if quick or N_LONG not in rss or N_FRAMES not in rss:
         why = "skipped (--quick)" if quick else "a track run failed"
         rows.append(Row("track peak RSS, 2000 vs 200 frames/view",

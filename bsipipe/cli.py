@@ -223,7 +223,11 @@ def synth(config, out) -> None:
               help="seeds.csv view,marker,x_px,y_px in frame 0 (or an XMALab 2-D CSV); default: automatic.")
 @click.option("--fps", type=click.FloatRange(min=0, min_open=True), help="Frame rate where frames have no time stamps.")
 @click.option("--loop/--no-loop", default=None, help="Close the loop on the triangulation (default on).")
-@click.option("--method", type=click.Choice(["gaussian", "centroid", "radial"]), help="Sub-pixel centre (default gaussian).")
+@click.option("--method", type=click.Choice(["gaussian", "centroid", "radial"]), help="Sub-pixel centre (default gaussian; centroid with --parity trackpy).")
+@click.option("--parity", type=click.Choice(["none", "trackpy"]),
+              help="trackpy: detect exactly as trackpy.locate(diameter, invert=dark) does, to reproduce a trackpy "
+                   "user's features (odd --diameter-px, no --seeds; implies --method centroid).")
+@click.option("--minmass", type=click.FloatRange(min=0), help="With --parity trackpy: trackpy's minmass (default 0).")
 @click.option("--roi", type=click.Choice(["auto", "none"]), help="auto: the intensifier's circular field (default).")
 @click.option("--channel", type=click.IntRange(0, 2), help="Colour frames: use this channel (0 R, 1 G, 2 B).")
 @click.option("--lowpass-hz", type=click.FloatRange(min=0, min_open=True),

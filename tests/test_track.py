@@ -11,7 +11,6 @@ from click.testing import CliRunner
 
 from bsipipe.cli import cli
 from bsipipe.imaging.track import TrackSettings, link_detections, track_view
-from bsipipe.io.images import read_image
 from bsipipe.io.xmalab import format_xmalab_2d, format_xmalab_3d, is_xmalab_2d, read_xmalab_2d, read_xmalab_3d
 from bsipipe.synth.xray import RayField
 from test_detect import REAL, WATER, bead_camera, render_beads
@@ -257,7 +256,7 @@ def test_cli_track_errors(tmp_path, case):
         expect = "stereo"
     elif case == "bad-key":
         cfg = tmp_path / "t.yaml"
-        cfg.write_text(f"views:\n  cam1: frames\nspeed: 3\n")
+        cfg.write_text("views:\n  cam1: frames\nspeed: 3\n")
         args = ["track", str(cfg), "-o", str(out)]
         expect = "speed"
     r = CliRunner().invoke(cli, args)
@@ -323,3 +322,64 @@ def test_cli_track_trackpy_parity_mode(tmp_path):
     seeds.write_text(f"view,marker,x_px,y_px\ncam1,A,{ref['x'][0]},{ref['y'][0]}\n")
     r = CliRunner().invoke(cli, ["track", str(cfg), "--seeds", str(seeds), "-o", str(tmp_path / "out2")])
     assert r.exit_code == 2 and "parity" in r.output
+
+
+def test_cli_parity_flag_reproduces_trackpy_frame29(tmp_path):
+    """The command-line form of the parity mode, ``--parity trackpy --minmass 20`` (the method
+    follows: trackpy's centroid), on frames 27-29 of the real microscopy: frame 29 holds
+    every one of trackpy's 599 features (``locate(green, 11, invert=True, minmass=20)``,
+    live when trackpy is installed) to rounding, nothing else.  Given with another method,
+    or with a diameter trackpy would refuse (even), the flag is an error (exit 2).  The
+    config only turns the figures off and keeps one-frame tracks (a feature seen in frame 29
+    alone is still trackpy's feature)."""
+    from test_detect import trackpy_frame29
+    from scipy.spatial import cKDTree
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i in (27, 28, 29):
+        (frames / f"bulk_water_{i:03d}.png").write_bytes((WATER / f"bulk_water_{i:03d}.png").read_bytes())
+    cfg = tmp_path / "quiet.yaml"
+    cfg.write_text("views: {water: frames}\nfigures: false\ntracking: {min_track_frames: 1}\n")
+    args = ["track", str(cfg), "--channel", "1", "--diameter-px", "11", "--parity", "trackpy", "--minmass", "20"]
+    r = CliRunner().invoke(cli, args + ["-o", str(tmp_path / "out")])
+    assert r.exit_code == 0, r.output
+    j = json.loads((tmp_path / "out" / "track.json").read_text())
+    assert j["provenance"]["config"]["detection"]["method"] == "centroid"
+    assert j["provenance"]["config"]["detection"]["parity"] == "trackpy"
+    m2 = pd.read_csv(tmp_path / "out" / "markers2d.csv")
+    ours = m2[(m2["frame"] == 2) & m2["found"]][["x_px", "y_px"]].to_numpy()
+    f, _, how = trackpy_frame29()
+    theirs = f[["x", "y"]].to_numpy()
+    d, _ = cKDTree(ours).query(theirs)
+    print(f"trackpy {how}: {len(theirs)} features in frame 29; --parity trackpy: {len(ours)}, within 0.5 px "
+          f"{np.mean(d < 0.5):.3f}, max distance {d.max():.2g} px")
+    assert np.mean(d < 0.5) >= 0.95
+    assert d.max() < 1e-5 and len(ours) == len(theirs)          # markers2d.csv keeps 6 decimals
+    for extra, word in ((["--method", "gaussian"], "centroid"), (["--diameter-px", "10"], "odd")):
+        r = CliRunner().invoke(cli, args + extra + ["-o", str(tmp_path / "bad")])
+        assert r.exit_code == 2 and word in r.output, r.output
+        assert not (tmp_path / "bad" / "track.json").exists()
+
+
+def test_cli_parity_and_trackpy_linking_30_frames(tmp_path):
+    """The whole trackpy workflow from the command line: ``--parity trackpy --minmass 20`` on
+    the 30 frames of real microscopy, linked with trackpy's rule and numbers (``tracking:
+    {gate_px: 5, gate_growth_px: 0, motion: static, memory: 3, min_track_frames: 1}`` =
+    ``link(search_range=5, memory=3)``, every trajectory kept), gives trackpy's features of
+    every frame and every one of its links, no others (trackpy's stored ``batch`` features
+    and their ``link``, live when trackpy is installed)."""
+    cfg = tmp_path / "trackpy.yaml"
+    cfg.write_text(f"views: {{water: {WATER}}}\nfigures: false\n"
+                   "tracking: {gate_px: 5, gate_growth_px: 0, motion: static, memory: 3, min_track_frames: 1}\n")
+    r = CliRunner().invoke(cli, ["track", str(cfg), "--channel", "1", "--diameter-px", "11", "--parity", "trackpy",
+                                 "--minmass", "20", "-o", str(tmp_path / "out")])
+    assert r.exit_code == 0, r.output
+    feats, linked = trackpy_30()
+    m2 = pd.read_csv(tmp_path / "out" / "markers2d.csv")
+    m2 = m2[m2["found"]]
+    ours, theirs = _links(m2.assign(particle=m2["marker"]), "x_px", "y_px"), _links(linked)
+    print(f"trackpy: {len(feats)} features, {linked['particle'].nunique()} trajectories, {len(theirs)} links; "
+          f"bsipipe track: {len(m2)} positions, {m2['marker'].nunique()} tracks, {len(ours & theirs)} common links, "
+          f"{len(ours - theirs)} others")
+    assert len(m2) == len(feats) and m2["marker"].nunique() == linked["particle"].nunique()
+    assert ours == theirs

@@ -29,7 +29,7 @@ from typing import Literal, Sequence
 
 import numpy as np
 import pandas as pd
-from pydantic import Field, PositiveFloat, field_validator
+from pydantic import Field, PositiveFloat, field_validator, model_validator
 
 from ..config import StrictModel, load_yaml, validate
 from ..errors import InputError, ProcessingError
@@ -43,13 +43,22 @@ class DetectionConfig(StrictModel):
     k_sigma: PositiveFloat = Field(5.0, description="threshold in robust sd of the smoothed top-hat (whole frames)")
     window_k_sigma: PositiveFloat = Field(4.0, description="the same in the search windows around seeded markers")
     min_snr: float = Field(3.0, ge=0, description="amplitude / pixel noise a marker needs")
-    method: Literal["gaussian", "centroid", "radial"] = "gaussian"
+    method: Literal["gaussian", "centroid", "radial"] = Field(
+        "gaussian", description="sub-pixel centre; default centroid when parity is trackpy, else gaussian")
     parity: Literal["none", "trackpy"] = Field("none", description="trackpy: detect exactly as trackpy.locate does "
                                                "(method centroid, no seeds; for comparisons with trackpy results)")
     minmass: float = Field(0.0, ge=0, description="parity trackpy: trackpy's minmass")
     max_elongation: float = Field(2.5, ge=1)
     blur_px: PositiveFloat | None = Field(None, description="marker blur sigma (default max(0.6, d/5))")
     roi: Literal["auto", "none"] = Field("auto", description="auto: the intensifier's circular field; none: whole frame")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _parity_method(cls, data):
+        # trackpy parity is trackpy's centroid: it is the method unless one is named
+        if isinstance(data, dict) and data.get("parity") == "trackpy" and data.get("method") is None:
+            data = {**data, "method": "centroid"}
+        return data
 
 
 class TrackingConfig(StrictModel):
@@ -128,7 +137,7 @@ def build_config(config_path=None, *, view=(), calibration=None, polarity=None, 
     for k, v in extra.items():
         if v is None:
             continue
-        if k in ("method", "k_sigma", "min_snr", "roi"):
+        if k in ("method", "parity", "minmass", "k_sigma", "min_snr", "roi"):
             data.setdefault("detection", {})[k] = v
         else:
             data[k] = v
@@ -366,6 +375,10 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     if det.parity == "trackpy" and (det.method != "centroid" or seed_df is not None):
         raise InputError("detection.parity 'trackpy' is trackpy's locate: it needs method 'centroid' and "
                          "automatic detection (no seeds)", path=config_path, key="detection.parity")
+    if det.parity == "trackpy" and not (float(d).is_integer() and int(d) % 2 == 1):
+        raise InputError(f"detection.parity 'trackpy' needs an odd whole diameter, as trackpy.locate does; the "
+                         f"diameter is {d:g} px ({diameter_note}): give --diameter-px", path=config_path,
+                         key="diameter_px")
     tk = TrackSettings(**cfg.tracking.model_dump())
 
     tables, events, info = [], [], {}

@@ -13,7 +13,11 @@ The chain (:func:`detect_markers`), for markers of diameter ``d`` pixels:
 3. **Threshold from the noise.**  ``T`` is lightly smoothed (a Gaussian of about the
    marker's blur, the matched filter of a small blob) to ``T_s``, and the threshold is
    :math:`\mathrm{median}(T_s) + k\,\hat\sigma`, :math:`\hat\sigma = 1.4826\,\mathrm{MAD}(T_s)`
-   over the region of interest: a robust estimate that the sparse markers do not move.
+   over the region of interest: a robust estimate that the sparse markers do not move.  The
+   statistics (and the pixel noise, step 6) are taken on a sampling grid of about 16,000
+   pixels or more (:func:`_grid_step`); the region is tested on that grid and at the
+   candidate pixels only, so the whole-frame work per frame is the top-hat, its smoothing
+   (:func:`smoothed_tophat`) and one comparison with the threshold.
 4. **Blobs.**  Local maxima of ``T_s`` above the threshold, at least about a diameter
    apart (two touching markers give two), are the candidates; each blob is measured at
    half its peak height (``area_px``), which does not depend on the threshold: noise specks
@@ -39,7 +43,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass, fields, replace
-from typing import Literal, Sequence
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -184,6 +188,28 @@ def tophat(frame: np.ndarray, diameter_px: float, polarity: Polarity = "dark",
     return cv2.morphologyEx(img, op, se, borderType=cv2.BORDER_REPLICATE).astype(np.float32, copy=False)
 
 
+def smoothed_tophat(frame: np.ndarray, diameter_px: float, polarity: Polarity, structuring_px: int,
+                    sigma_px: float) -> np.ndarray:
+    """:func:`tophat` smoothed by a Gaussian of ``sigma_px``, float32 (h, w): the same values as
+    ``cv2.GaussianBlur(tophat(...), (0, 0), sigma_px)`` (kernel to 4 sigma, reflected border),
+    but the morphology stays in the frame's dtype and the conversion to float32 is fused into
+    the separable filter: no full-frame float copy of the top-hat."""
+    img = np.asarray(frame)
+    if img.dtype not in (np.uint8, np.uint16, np.float32):
+        img = img.astype(np.float32)
+    se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (structuring_px, structuring_px))
+    op = cv2.MORPH_BLACKHAT if polarity == "dark" else cv2.MORPH_TOPHAT
+    t = cv2.morphologyEx(img, op, se, borderType=cv2.BORDER_REPLICATE)
+    g = _gauss_kernel(float(sigma_px))
+    return cv2.sepFilter2D(t, cv2.CV_32F, g, g, borderType=cv2.BORDER_REFLECT_101)
+
+
+@functools.lru_cache(maxsize=16)
+def _gauss_kernel(sigma_px: float) -> np.ndarray:
+    """The kernel ``cv2.GaussianBlur`` uses on float images for ``sigma_px`` (size round(8 sigma + 1), odd)."""
+    return cv2.getGaussianKernel(int(round(sigma_px * 8 + 1)) | 1, sigma_px, cv2.CV_32F)
+
+
 def _clamp(x, lo, hi):
     """``np.clip`` for the per-frame path: the same values from two ufunc calls, without
     ``np.clip``'s Python-level dispatch (a dozen microseconds a call, dozens of calls a frame)."""
@@ -228,14 +254,62 @@ def pixel_noise(frame: np.ndarray, mask: np.ndarray | None = None, step: int = 1
     :math:`6\sigma`.  The MAD of the output (within ``mask``, every ``step``-th row and
     column) makes the markers and edges, a small fraction of the pixels, irrelevant.
     """
-    img = np.asarray(frame, np.float32)
-    r = cv2.filter2D(img, cv2.CV_32F, _IMMERKAER, borderType=cv2.BORDER_REPLICATE)[1:-1:step, 1:-1:step]
+    img = np.asarray(frame)
+    r = _immerkaer(img, step)
     if mask is not None:
         r = r[np.asarray(mask)[1:-1:step, 1:-1:step]]
+    return _noise_from_highpass(r)
+
+
+def _immerkaer(img: np.ndarray, step: int = 1) -> np.ndarray:
+    """Immerkaer's high-pass at pixels ``[1:-1:step, 1:-1:step]`` (float32; int32 for 8/16-bit
+    frames with ``step`` > 1, exact)."""
+    if step == 1:
+        return cv2.filter2D(img.astype(np.float32, copy=False), cv2.CV_32F, _IMMERKAER,
+                            borderType=cv2.BORDER_REPLICATE)[1:-1, 1:-1]
+    # the filter at the sampled pixels only: nine strided views, 1/step^2 of the work
+    h, w = img.shape
+    ny, nx = len(range(1, h - 1, step)), len(range(1, w - 1, step))
+    if ny == 0 or nx == 0:
+        return np.zeros((ny, nx), np.float32)
+
+    # 8/16-bit frames: exact integer arithmetic (the statistics then use a histogram)
+    dt = np.int32 if img.dtype in (np.uint8, np.uint16, np.int8, np.int16) else np.float32
+
+    def at(dy, dx):
+        return img[1 + dy:2 + dy + (ny - 1) * step:step, 1 + dx:2 + dx + (nx - 1) * step:step].astype(dt)
+    return 4 * at(0, 0) - 2 * (at(-1, 0) + at(1, 0) + at(0, -1) + at(0, 1)) + \
+        (at(-1, -1) + at(-1, 1) + at(1, -1) + at(1, 1))
+
+
+def _noise_from_highpass(r: np.ndarray) -> float:
+    """Pixel noise sd from Immerkaer's high-pass values: 1.4826 MAD / 6 (:func:`_robust_sd`)."""
     r = r.ravel()
     if r.size == 0:
         return float("nan")
+    if r.dtype.kind == "i" and r.size > 4096:
+        return float(max(_robust_sd_int(r), 1e-3) / 6.0)
     return float(max(float(_robust_sd(r)), 1e-3) / 6.0)
+
+
+def _median_hist(counts: np.ndarray, n: int) -> float:
+    """Median (mean of the middle pair) of ``n`` integers 0, 1, ... from their histogram."""
+    c = np.cumsum(counts)
+    lo = int(np.searchsorted(c, (n - 1) // 2, side="right"))
+    hi = int(np.searchsorted(c, n // 2, side="right"))
+    return 0.5 * (lo + hi)
+
+
+def _robust_sd_int(v: np.ndarray) -> float:
+    """:func:`_robust_sd` of integers, by histograms instead of partitions (the same value)."""
+    lo = int(v.min())
+    n = v.size
+    med = lo + _median_hist(np.bincount(v - lo), n)
+    dev2 = np.abs(2 * v - int(round(2 * med)))           # twice |v - med|: integers
+    mad = 0.5 * _median_hist(np.bincount(dev2), n)
+    if mad > 0:
+        return _MAD * mad
+    return float(np.mean(dev2)) * 0.5 * math.sqrt(math.pi / 2)
 
 
 def robust_threshold(values: np.ndarray, k_sigma: float) -> tuple[float, float]:
@@ -669,16 +743,41 @@ def _peaks(ts: np.ndarray, above: np.ndarray, diameter_px: float, floor: np.ndar
     (pixels within one diameter of the peak above half its height over ``floor``).
     ``floor`` may be an image (per-window floors).  Returns (x, y, area) arrays of the
     peaks whose area is plausible for a marker."""
+    i = np.flatnonzero(above)
+    ys, xs = np.divmod(i, ts.shape[1])
+    return _peaks_at(ts, xs, ys, diameter_px, floor, st)
+
+
+def _peaks_at(ts: np.ndarray, xs: np.ndarray, ys: np.ndarray, diameter_px: float, floor: np.ndarray | float,
+              st: DetectionSettings, region: "_Region | None" = None):
+    """:func:`_peaks` on the pixels ``xs, ys`` (raster order) above the threshold: a pixel is a
+    maximum when no pixel of the disk of side ``max(3, d)`` around it is higher (the test of
+    ``ts >= cv2.dilate(ts, disk)``, made only where it can pass: no full-frame dilation), and
+    in ``region`` (tested on the maxima only)."""
     k = max(3, int(round(diameter_px)) | 1)
-    dil = cv2.dilate(ts, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
-    pk = above & (ts >= dil)
-    ys, xs = np.nonzero(pk)
-    if len(xs) > 1 and (len(xs) > 64 or len(_pairs_within(np.column_stack([xs, ys]).astype(float),
-                                                           np.column_stack([xs, ys]).astype(float), 1.5)[0]) > len(xs)):
-        # a plateau of equal maxima gives several (touching) pixels: keep one per plateau
-        _, lab = cv2.connectedComponents(pk.astype(np.uint8), connectivity=8)
-        _, first = np.unique(lab[ys, xs], return_index=True)
-        xs, ys = xs[first], ys[first]
+    if len(xs):
+        h, w = ts.shape
+        dy, dx = np.nonzero(cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+        dy, dx = dy - k // 2, dx - k // 2
+        # edge pixels clamp to the image: a clamped neighbour is still inside the disk
+        nb = ts[_clamp(ys[:, None] + dy[None], 0, h - 1), _clamp(xs[:, None] + dx[None], 0, w - 1)]
+        pk = ts[ys, xs] >= nb.max(axis=1)
+        xs, ys = xs[pk], ys[pk]
+        if region is not None and not region.everywhere and len(xs):
+            ok = region.at(xs, ys)
+            xs, ys = xs[ok], ys[ok]
+    if len(xs) > 1:
+        pts = np.column_stack([xs, ys]).astype(float)
+        i, j = _pairs_within(pts, pts, 1.5)
+        if np.any(i != j):
+            # a plateau of equal maxima gives several (touching) pixels: keep the first of each
+            from scipy.sparse import coo_matrix
+            from scipy.sparse.csgraph import connected_components
+            _, lab = connected_components(coo_matrix((np.ones(len(i)), (i, j)), shape=(len(xs), len(xs))),
+                                          directed=False)
+            _, first = np.unique(lab, return_index=True)
+            first.sort()
+            xs, ys = xs[first], ys[first]
     if len(xs) == 0:
         return xs, ys, np.zeros(0)
     h, w = ts.shape
@@ -716,7 +815,7 @@ def _finish(img, xs, ys, area, noise, diameter_px, polarity, st, mask=None, neig
         h, w = img.shape
         xi = np.clip(np.rint(np.nan_to_num(m["x_px"])).astype(int), 0, w - 1)
         yi = np.clip(np.rint(np.nan_to_num(m["y_px"])).astype(int), 0, h - 1)
-        keep &= mask[yi, xi]
+        keep &= mask.at(xi, yi) if isinstance(mask, _Region) else mask[yi, xi]
     m = {k: v[keep] for k, v in m.items()}
     return _dedupe(m, 0.5 * diameter_px)
 
@@ -744,65 +843,169 @@ def dark_objects(img: np.ndarray, diameter_px: float, grow_px: int = 2) -> np.nd
     closing with a disk 16 marker diameters wide, on a copy reduced by about a diameter)
     and larger than a disc twice the marker's diameter.  A steel bead is far smaller; the
     top-hat's responses in such objects' texture are not markers.  A marker next to an
-    instrument is kept (the blob-shape and above-peak rules deal with the edge itself)."""
-    a = np.asarray(img, np.float32)
-    h, w = a.shape
-    f = max(1, int(diameter_px))
-    small = cv2.resize(a, (max(w // f, 1), max(h // f, 1)), interpolation=cv2.INTER_AREA)
-    k = max(3, int(round(16 * diameter_px / f)) | 1)
-    bg = cv2.morphologyEx(small, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)),
-                          borderType=cv2.BORDER_REPLICATE)
-    dark = ((small < 0.5 * bg) & (bg > 0)).astype(np.uint8)
-    n, lab, stats, _ = cv2.connectedComponentsWithStats(dark, connectivity=8)
-    big = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] * f * f > math.pi * (2 * diameter_px) ** 2)
-    big = big[big > 0]
-    if big.size == 0:
+    instrument is kept (the blob-shape and above-peak rules deal with the edge itself).
+    (Detection itself tests the objects at points, :class:`_DarkObjects`, without this mask.)"""
+    d = _DarkObjects.find(img, diameter_px, grow_px)
+    h, w = np.asarray(img).shape
+    if d is None:
         return np.zeros((h, w), bool)
-    m = cv2.resize(np.isin(lab, big).astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST)
-    kk = 2 * (grow_px + f // 2) + 1
-    return cv2.dilate(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (kk, kk))) > 0
+    m = cv2.resize(d.small.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST)
+    return cv2.dilate(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (d.kk, d.kk))) > 0
 
 
-def _roi_mask(img: np.ndarray, roi, margin: float, diameter_px: float = 4.0, polarity: Polarity = "dark"
-              ) -> np.ndarray | None:
-    if isinstance(roi, str):
-        if roi == "none":
+class _DarkObjects:
+    """:func:`dark_objects` kept at the reduced size: ``small`` (hs, ws) bool, reduced pixel
+    (i, j) standing for full pixels [i f, (i + 1) f) x [j f, (j + 1) f), grown at full size by
+    a disk of side ``kk``.  :meth:`at` is exact at full-size points; :meth:`grid` is a
+    slightly wider (never narrower) mask for sampling statistics."""
+
+    def __init__(self, small: np.ndarray, f: int, kk: int, shape):
+        self.small, self.f, self.kk, self.shape = small, f, kk, shape
+        reach = kk // 2
+        rr = -(-reach // f)                          # the growth in reduced pixels, rounded up
+        self.coarse = cv2.dilate(small.astype(np.uint8), np.ones((2 * rr + 1, 2 * rr + 1), np.uint8)) > 0
+        dy, dx = np.nonzero(cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (kk, kk)))
+        self.dy, self.dx = dy - reach, dx - reach
+
+    @classmethod
+    def find(cls, img: np.ndarray, diameter_px: float, grow_px: int = 2) -> "_DarkObjects | None":
+        """The objects of a frame (None when there are none).  The reduced copy is made in the
+        frame's own dtype (8/16-bit: area means rounded to whole grey levels)."""
+        a = np.asarray(img)
+        if a.dtype not in (np.uint8, np.uint16, np.float32):
+            a = a.astype(np.float32)
+        h, w = a.shape
+        f = max(1, int(diameter_px))
+        small = cv2.resize(a, (max(w // f, 1), max(h // f, 1)), interpolation=cv2.INTER_AREA)
+        k = max(3, int(round(16 * diameter_px / f)) | 1)
+        bg = cv2.morphologyEx(small, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)),
+                              borderType=cv2.BORDER_REPLICATE)
+        if small.dtype == np.float32:
+            dark = ((small < 0.5 * bg) & (bg > 0)).astype(np.uint8)
+        else:                                        # integers: 2 small < bg, exactly
+            dark = ((2 * small.astype(np.int32) < bg) & (bg > 0)).astype(np.uint8)
+        n, lab, stats, _ = cv2.connectedComponentsWithStats(dark, connectivity=8)
+        big = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] * f * f > math.pi * (2 * diameter_px) ** 2)
+        big = big[big > 0]
+        if big.size == 0:
             return None
-        if roi != "auto":
+        keep = np.zeros(n, bool)
+        keep[big] = True
+        return cls(keep[lab], f, 2 * (grow_px + f // 2) + 1, (h, w))
+
+    def _block(self, xs, ys):
+        hs, ws = self.small.shape
+        return np.minimum(ys * hs // self.shape[0], hs - 1), np.minimum(xs * ws // self.shape[1], ws - 1)
+
+    def at(self, xs, ys) -> np.ndarray:
+        """Whether full-size pixels (xs, ys) (integer arrays that broadcast) are in a grown object."""
+        xs, ys = np.broadcast_arrays(np.asarray(xs), np.asarray(ys))
+        out = np.zeros(xs.shape, bool)
+        by, bx = self._block(xs, ys)
+        near = self.coarse[by, bx]
+        if not near.any():
+            return out
+        x, y = xs[near].ravel(), ys[near].ravel()
+        h, w = self.shape
+        px, py = x[:, None] + self.dx[None], y[:, None] + self.dy[None]
+        inside = (px >= 0) & (px < w) & (py >= 0) & (py < h)
+        by, bx = self._block(_clamp(px, 0, w - 1), _clamp(py, 0, h - 1))
+        out[near] = (self.small[by, bx] & inside).any(axis=1)
+        return out
+
+    def grid(self, ys, xs) -> np.ndarray:
+        by, bx = self._block(xs, ys)
+        return self.coarse[by, bx]
+
+
+class _Region:
+    """Where markers are looked for in a frame: inside the field of view (``margin`` from its
+    edge, or from the image border when no field was found and ``border`` is set), inside a
+    given mask, and outside dark objects.  Tested on a sampling grid (for the statistics) and
+    at points (for the candidates); no full-size mask is built for a field of view.
+    ``None`` parts impose nothing."""
+
+    def __init__(self, shape, fov: FieldOfView | None = None, margin: float = 0.0, border: bool = False,
+                 mask: np.ndarray | None = None, dark: np.ndarray | None = None):
+        self.shape, self.fov, self.margin, self.border = shape, fov, float(margin), border
+        self.mask, self.dark = mask, dark
+
+    @property
+    def everywhere(self) -> bool:
+        return ((self.fov is None or (not self.fov.found and not self.border)) and self.mask is None
+                and self.dark is None)
+
+    def grid(self, y0: int, x0: int, step: int) -> np.ndarray | None:
+        """Bool mask of pixels ``[y0::step, x0::step]`` (None: all).  The field-of-view part is
+        the same in every frame of a sequence: kept (read-only) between calls."""
+        if self.everywhere:
+            return None
+        h, w = self.shape
+        ys = np.arange(y0, h, step)[:, None]
+        xs = np.arange(x0, w, step)[None, :]
+        if self.mask is None:
+            try:
+                ok = _fov_grid(tuple(self.shape), self.fov, self.margin, self.border, y0, x0, step)
+            except TypeError:                        # a FieldOfView built with lists: not hashable
+                ok = _Region(self.shape, self.fov, self.margin, self.border).at(xs, ys)
+        else:
+            ok = self.at(xs, ys, coarse=True) if self.dark is None else \
+                _Region(self.shape, self.fov, self.margin, self.border, self.mask).at(xs, ys)
+        if self.dark is not None:
+            ok = ok & ~self.dark.grid(ys, xs)
+        return ok
+
+    def at(self, xs, ys, coarse: bool = False) -> np.ndarray:
+        """Whether the pixels (xs, ys) (integer arrays that broadcast) are in the region
+        (``coarse``: dark objects grown a little wider, for sampling statistics)."""
+        ok = np.ones(np.broadcast_shapes(np.shape(xs), np.shape(ys)), bool)
+        if self.fov is not None:
+            h, w = self.shape
+            if self.fov.found:
+                cx, cy = self.fov.centre_px
+                ok &= (xs - cx) ** 2 + (ys - cy) ** 2 <= (self.fov.radius_px - self.margin) ** 2
+            elif self.border:
+                b = int(math.ceil(self.margin))
+                ok &= (xs >= b) & (xs < w - b) & (ys >= b) & (ys < h - b)
+        if self.mask is not None:
+            ok &= self.mask[ys, xs]
+        if self.dark is not None:
+            ok &= ~(self.dark.grid(ys, xs) if coarse else self.dark.at(xs, ys))
+        return ok
+
+
+@functools.lru_cache(maxsize=8)
+def _fov_grid(shape, fov, margin, border, y0, x0, step) -> np.ndarray:
+    """The field-of-view and border part of :meth:`_Region.grid` (read-only)."""
+    h, w = shape
+    ok = _Region(shape, fov, margin, border).at(np.arange(x0, w, step)[None, :], np.arange(y0, h, step)[:, None])
+    ok.setflags(write=False)
+    return ok
+
+
+def _region(img: np.ndarray, roi, margin: float, diameter_px: float = 4.0, polarity: Polarity = "dark",
+            dark: bool | None = None) -> _Region:
+    """The :class:`_Region` ``roi`` names (see :func:`detect_markers`); ``dark``: leave out
+    :func:`dark_objects` (default: for dark markers when the field is found automatically)."""
+    if isinstance(roi, str):
+        if roi not in ("auto", "none"):
             raise ValueError(f"roi must be 'auto', 'none', a FieldOfView or a mask, got {roi!r}")
+        if roi == "none":
+            return _Region(img.shape, dark=_DarkObjects.find(img, diameter_px) if dark else None)
+    if dark is None:
+        dark = polarity == "dark" and (roi is None or isinstance(roi, str))
+    dk = _DarkObjects.find(img, diameter_px) if dark else None
     if roi is None or isinstance(roi, str):
-        fov = find_field_of_view(img)
-        m = fov.mask(margin) if fov.found else None
-        if polarity == "dark":
-            dk = dark_objects(img, diameter_px)
-            if dk.any():
-                m = ~dk if m is None else m & ~dk
-        return m
+        return _Region(img.shape, find_field_of_view(img), margin, border=False, dark=dk)
     if isinstance(roi, FieldOfView):
-        return roi.mask(margin)
+        return _Region(img.shape, roi, margin, border=True, dark=dk)
     m = np.asarray(roi, bool)
     if m.shape != img.shape:
         raise ValueError(f"roi mask has shape {m.shape}, frame {img.shape}")
     if margin > 0:
         k = 2 * int(math.ceil(margin)) + 1
         m = cv2.erode(m.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
-    return m
-
-
-def _unclipped(img: np.ndarray) -> np.ndarray:
-    """Pixels strictly between the lowest and highest value the dtype (integers) or the
-    image (floats) holds, grown away from clipped ones by a pixel: saturated or black
-    regions have no noise to measure."""
-    a = np.asarray(img)
-    if np.issubdtype(a.dtype, np.integer):
-        info = np.iinfo(a.dtype)
-        lo, hi = info.min, info.max
-    else:
-        lo, hi = float(np.nanmin(a)), float(np.nanmax(a))
-    clipped = ((a <= lo) | (a >= hi)).astype(np.uint8)
-    if not clipped.any():
-        return np.ones(a.shape, bool)
-    return cv2.dilate(clipped, np.ones((3, 3), np.uint8)) == 0
+    return _Region(img.shape, mask=m, dark=dk)
 
 
 # --- trackpy parity ------------------------------------------------------------------------------
@@ -888,25 +1091,33 @@ def locate_trackpy(frame: np.ndarray, diameter_px: int, polarity: Polarity = "da
     pos = np.argwhere((im == dil) & (im > level))
     h, w = im.shape
     pos = pos[~np.any((pos < margin) | (pos > np.array([h, w]) - margin - 1), axis=1)]
-    # centre of mass in a disc that moves by whole pixels (trackpy.refine.center_of_mass._refine)
+    # centre of mass in a disc that moves by whole pixels (trackpy.refine.center_of_mass._refine),
+    # every feature at once: each stops moving when its centre is within shift_thresh
     yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
-    disc = ((yy / r) ** 2 + (xx / r) ** 2 <= 1).astype(np.uint8)
-    gy = np.arange(2 * r + 1, dtype=float)[:, None]
-    gx = np.arange(2 * r + 1, dtype=float)[None, :]
+    disc = ((yy / r) ** 2 + (xx / r) ** 2 <= 1).astype(np.int64)
+    gy = np.arange(2 * r + 1)[None, :, None]
+    gx = np.arange(2 * r + 1)[None, None, :]
+    off_px = np.arange(-r, r + 1)
+    c = pos.astype(np.int64)
+    hi = np.array([h, w]) - 1 - r
     out = np.empty((len(pos), 4))
-    for n, (cy, cx) in enumerate(pos):
-        c = np.array([cy, cx])
-        for _ in range(max(int(max_iterations), 1)):
-            nb = disc * im[c[0] - r:c[0] + r + 1, c[1] - r:c[1] + r + 1]
-            m = nb.sum()
-            cm = np.array([(nb * gy).sum() / m, (nb * gx).sum() / m]) if m != 0 else np.array([r, r], float)
-            cm_i = cm - r + c
-            off = cm - r
-            if np.all(np.abs(off) < shift_thresh):
-                break
-            c = c + (off > shift_thresh) - (off < -shift_thresh)
-            c = np.clip(c, r, np.array([h, w]) - 1 - r).astype(int)
-        out[n] = (cm_i[1], cm_i[0], float(nb.sum()), float(nb.max()))
+    todo = np.arange(len(pos))
+    for _ in range(max(int(max_iterations), 1)):
+        if len(todo) == 0:
+            break
+        cc = c[todo]
+        nb = disc[None] * im[(cc[:, 0, None] + off_px)[:, :, None], (cc[:, 1, None] + off_px)[:, None, :]]
+        m = nb.sum(axis=(1, 2))
+        ok = m != 0
+        mm = np.where(ok, m, 1)
+        cm = np.where(ok[:, None], np.column_stack([(nb * gy).sum(axis=(1, 2)) / mm, (nb * gx).sum(axis=(1, 2)) / mm]),
+                      float(r))
+        out[todo] = np.column_stack([cm[:, 1] - r + cc[:, 1], cm[:, 0] - r + cc[:, 0], m, nb.max(axis=(1, 2))])
+        off = cm - r
+        done = np.all(np.abs(off) < shift_thresh, axis=1)
+        moved = np.clip(cc + (off > shift_thresh) - (off < -shift_thresh), r, hi)
+        c[todo[~done]] = moved[~done]
+        todo = todo[~done]
     # of two features closer than the separation keep the brighter (trackpy.find.where_close)
     if len(out) > 1:
         from scipy.spatial import cKDTree
@@ -965,29 +1176,91 @@ def detect_markers(frame: np.ndarray, diameter_px: float, polarity: Polarity = "
         if st.method != "centroid":
             raise ValueError("parity='trackpy' is trackpy's centroid: use it with method='centroid'")
         return locate_trackpy(img, diameter_px, polarity, minmass=st.minmass)
+    return pd.DataFrame(detect_arrays(img, diameter_px, polarity, roi, st), columns=COLUMNS)
+
+
+def _grid_step(shape) -> int:
+    """Sampling step of the whole-frame statistics: about 16,000 samples or more (every 2nd
+    pixel of each axis up to 512 x 512, every 8th at 1024 x 1024), which give the median and
+    the robust sd to about 1 %."""
+    return max(2, int(math.sqrt(shape[0] * shape[1] / 16384)))
+
+
+def _unclipped(img: np.ndarray) -> np.ndarray | None:
+    """Pixels strictly between the lowest and highest value the dtype (integers) or the
+    image (floats) holds, grown away from clipped ones by a pixel (saturated or black regions
+    have no noise to measure): a uint8 mask, nonzero where unclipped; None when no pixel is
+    clipped.  Sample it on a grid (``m[y0::step, x0::step] > 0``)."""
+    a = np.asarray(img)
+    if a.dtype in (np.uint8, np.uint16):
+        hi = np.iinfo(a.dtype).max
+        mn, mx, _, _ = cv2.minMaxLoc(a)
+        if 0 < mn and mx < hi:
+            return None
+        # 255 strictly inside (0, max), eroded by a 3x3 square: away from clipped pixels by one
+        return cv2.erode(cv2.inRange(a, 1, hi - 1), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    if np.issubdtype(a.dtype, np.integer):
+        info = np.iinfo(a.dtype)
+        lo, hi = info.min, info.max
+    else:
+        lo, hi = float(np.nanmin(a)), float(np.nanmax(a))
+    clipped = ((a <= lo) | (a >= hi)).astype(np.uint8)
+    if not clipped.any():
+        return None
+    return (cv2.dilate(clipped, np.ones((3, 3), np.uint8)) == 0).view(np.uint8)
+
+
+def detect_arrays(frame: np.ndarray, diameter_px: float, polarity: Polarity = "dark",
+                  roi: FieldOfView | np.ndarray | str | None = None,
+                  settings: DetectionSettings = DetectionSettings(), *, dark: bool | None = None) -> dict:
+    """:func:`detect_markers` as a dict of :data:`COLUMNS` arrays, sorted by y then x (the
+    per-frame path of automatic tracking: no DataFrame per frame).  ``dark``: leave out
+    :func:`dark_objects` (default: for dark markers when ``roi`` is None or ``"auto"``; a
+    tracker that finds the field of view once passes it as ``roi`` with ``dark=True``).
+
+    Whole-frame work is the smoothed top-hat (:func:`smoothed_tophat`), one comparison with
+    the threshold, and Immerkaer's filter and the statistics on a sampling grid
+    (:func:`_grid_step`); masks are tested on that grid and at the candidate pixels only."""
+    st = settings
+    img = np.asarray(frame)
+    if img.ndim != 2:
+        raise ValueError(f"frame must be 2-D grayscale, got shape {img.shape}")
+    if st.parity != "none":
+        raise ValueError(f"parity {st.parity!r} is detect_markers' (trackpy's locate), not detect_arrays'")
     se = st.se_px(diameter_px)
     margin = st.edge_margin_px if st.edge_margin_px is not None else se // 2 + 2.0
-    mask = _roi_mask(img, roi, margin, diameter_px, polarity)
-    ts = cv2.GaussianBlur(tophat(img, diameter_px, polarity, se), (0, 0), st.smooth_px(diameter_px))
+    region = _region(img, roi, margin, diameter_px, polarity, dark)
+    ts = smoothed_tophat(img, diameter_px, polarity, se, st.smooth_px(diameter_px))
     # the noise statistics come from pixels that carry noise: not clipped (saturated or black)
-    stat = _unclipped(img)
-    if mask is not None:
-        stat = stat & mask
-    sample = ts[::2, ::2][stat[::2, ::2]]
+    g = _grid_step(img.shape)
+    inside = region.grid(0, 0, g)
+    unclipped = _unclipped(img)
+    unc = None if unclipped is None else unclipped[::g, ::g] > 0
+    stat = unc if inside is None else inside if unc is None else unc & inside
+    sample = ts[::g, ::g] if stat is None else ts[::g, ::g][stat]
     if sample.size < 100:
-        sample = ts[::2, ::2] if mask is None else ts[::2, ::2][mask[::2, ::2]]
+        sample = ts[::g, ::g] if inside is None else ts[::g, ::g][inside]
     thr, sd = robust_threshold(sample, st.k_sigma)
-    above = ts > thr
-    if mask is not None:
-        above &= mask
-    xs, ys, area = _peaks(ts, above, diameter_px, thr - st.k_sigma * sd, st)
+    i = np.flatnonzero(ts > thr)
+    ys, xs = np.divmod(i, img.shape[1])
+    xs, ys, area = _peaks_at(ts, xs, ys, diameter_px, thr - st.k_sigma * sd, st, region)
     if st.min_roundness is not None and len(xs):
         rnd = curvature_ratio(ts, xs, ys, max(3.0, 0.75 * diameter_px)) >= st.min_roundness
         xs, ys, area = xs[rnd], ys[rnd], area[rnd]
-    noise = pixel_noise(img, stat if stat.any() else mask, step=2)
-    m = _finish(img, xs, ys, area, np.full(len(xs), noise), diameter_px, polarity, st, mask)
-    df = pd.DataFrame(m, columns=COLUMNS)
-    return df.sort_values(["y_px", "x_px"]).reset_index(drop=True)
+    if len(xs) == 0:
+        return {c: np.zeros(0) for c in COLUMNS}
+    hp = _immerkaer(img, g)
+    inside1 = region.grid(1, 1, g)
+    inside1 = None if inside1 is None else inside1[:hp.shape[0], :hp.shape[1]]
+    use = None if unclipped is None else unclipped[1:-1:g, 1:-1:g] > 0
+    if inside1 is not None:
+        use = inside1 if use is None else use & inside1
+    if use is not None and not use.any():
+        use = inside1
+    noise = _noise_from_highpass(hp if use is None else hp[use])
+    m = _finish(img, xs, ys, area, np.full(len(xs), noise), diameter_px, polarity, st, region)
+    order = np.lexsort((m["x_px"], m["y_px"]))
+    return {c: m[c][order] for c in COLUMNS}
 
 
 # --- windows (seeded refinement and tracking) ----------------------------------------------------
@@ -1040,7 +1313,7 @@ def window_arrays(frame: np.ndarray, centres_xy, radii_px, diameter_px: float, p
         win = img[_clamp(rows, 0, h - 1)[:, :, None], _clamp(cols, 0, w - 1)[:, None, :]]        # (n, W, W)
         strip = np.ascontiguousarray(win.transpose(1, 0, 2).reshape(W, n * W))
         use = inside & core[None]
-    ts = cv2.GaussianBlur(tophat(strip, diameter_px, polarity, k), (0, 0), sg)
+    ts = smoothed_tophat(strip, diameter_px, polarity, k, sg)
     tsw = ts.reshape(W, n, W).transpose(1, 0, 2)        # (n, W, W)
     if fov is not None and fov.found:
         fx, fy = fov.centre_px

@@ -26,24 +26,28 @@ Every change is reported as an event (``events``: view, frame, marker, kind, det
 - ``partial``: the marker's amplitude fell below ``partial_fraction`` of its median (it is
   partly hidden, e.g. entering the shadow of an instrument): its centre may be biased.
 
-Without seeds (:func:`link_detections`), every detection that no track takes starts a new
-track; a track not seen for more than ``memory`` frames ends.
+Without seeds every frame is searched whole (:func:`~bsipipe.imaging.detect.detect_arrays`,
+the intensifier's field found once, in the first frame, as with seeds) and the detections are
+linked (:func:`link_detections`): every detection that no track takes starts a new track; a
+track not seen for more than ``memory`` frames ends.
 """
 
 from __future__ import annotations
 
 import bisect
+import itertools
 import logging
 import math
 from dataclasses import dataclass, field
-from typing import Iterable, Iterator, Literal, Sequence
+from typing import Iterable, Literal
 
 import numpy as np
 import pandas as pd
 from scipy.optimize import linear_sum_assignment
 
 from .detect import COLUMNS as DETECT_COLUMNS
-from .detect import DetectionSettings, FieldOfView, Polarity, detect_markers, find_field_of_view, window_arrays
+from .detect import (DetectionSettings, FieldOfView, Polarity, detect_arrays, detect_markers, find_field_of_view,
+                     window_arrays)
 
 log = logging.getLogger(__name__)
 
@@ -353,17 +357,38 @@ def _resolve_roi(img, roi):
 
 
 def _track_auto(frames, diameter_px, polarity, *, view, fps, roi, detection, settings, on_frame) -> TrackResult:
-    dets = []
+    dets: list[dict] = []
     times = {}
-    for k, fr in enumerate(frames):
+    fov_info = None
+    it = iter(frames)
+    first = next(it, None)
+    if detection.parity != "none":
+        def detect(img):
+            return {c: v.to_numpy(float) for c, v in detect_markers(img, diameter_px, polarity, roi, detection).items()}
+    elif first is not None:
+        # the intensifier's field does not move: found once, in the first frame; dark objects
+        # (instruments) do move, so they are looked for in every frame
+        img0 = _unpack(first, 0, fps)[0]
+        fov = _resolve_roi(img0, roi)
+        fov_info = fov.to_dict() if fov is not None else {"found": False}
+        auto = roi is None or (isinstance(roi, str) and roi == "auto")
+        where = (fov if fov.found else "none") if auto else roi
+        dark = True if (auto and polarity == "dark") else None
+
+        def detect(img):
+            return detect_arrays(img, diameter_px, polarity, where, detection, dark=dark)
+    for k, fr in enumerate(itertools.chain([first], it) if first is not None else ()):
         img, f, t = _unpack(fr, k, fps)
         if on_frame is not None:
             on_frame(f, img)
-        d = detect_markers(img, diameter_px, polarity, roi, detection)
-        d["frame"] = f
+        d = detect(img)
+        d["frame"] = np.full(len(d["x_px"]), f)
         times[f] = t
         dets.append(d)
-    det = pd.concat(dets, ignore_index=True) if dets else pd.DataFrame(columns=DETECT_COLUMNS + ["frame"])
+    if dets:
+        det = pd.DataFrame({c: np.concatenate([d[c] for d in dets]) for c in DETECT_COLUMNS + ["frame"]})
+    else:
+        det = pd.DataFrame(columns=DETECT_COLUMNS + ["frame"])
     S = settings.resolved(diameter_px)
     linked, events = link_detections(det, S["gate_px"], memory=settings.memory, motion=settings.motion,
                                      gate_growth_px=S["gate_growth_px"], max_gate_px=S["max_gate_px"],
@@ -396,7 +421,7 @@ def _track_auto(frames, diameter_px, polarity, *, view, fps, roi, detection, set
                              "pred_y_px": r.pred_y_px, "gate_px": r.gate_px, "status": "found"})
     table = pd.DataFrame(rows, columns=TRACK_COLUMNS)
     table["found"] = table["found"].astype(bool)
-    return TrackResult(table, events, None, {**settings.__dict__, **S})
+    return TrackResult(table, events, fov_info, {**settings.__dict__, **S})
 
 
 def link_detections(detections: pd.DataFrame, search_range_px: float, *, memory: int = 0,
@@ -426,10 +451,11 @@ def link_detections(detections: pd.DataFrame, search_range_px: float, *, memory:
     events: list[dict] = []
     frames = np.sort(det["frame"].unique())
     groups = det.groupby("frame").indices
+    xy_all = det[[x, y]].to_numpy(float)
     nxt = 0
     for f in frames:
         idx = np.asarray(groups[f])
-        xy = det.loc[idx, [x, y]].to_numpy(float)
+        xy = xy_all[idx]
         live = [i for i, t in enumerate(tracks) if not t.ended]
         for i in live:
             if f - tracks[i].frame - 1 > memory:
