@@ -232,6 +232,9 @@ def synth(config, out) -> None:
 @click.option("--channel", type=click.IntRange(0, 2), help="Colour frames: use this channel (0 R, 1 G, 2 B).")
 @click.option("--lowpass-hz", type=click.FloatRange(min=0, min_open=True),
               help="Also write zero-phase low-passed 3-D trajectories (*_filt columns).")
+@click.option("--smooth/--no-smooth", default=None,
+              help="Kalman/RTS-smooth the 2-D tracks and triangulate the smoothed centres (default on; raw "
+                   "values kept in x_px, y_px and the *_raw 3-D columns).")
 @click.option("-o", "--out", required=True, type=click.Path(file_okay=False), help="Output folder.")
 @handle_errors
 def track(config, out, **opts) -> None:
@@ -259,6 +262,14 @@ def track(config, out, **opts) -> None:
                        f"{s['reprojection_rms_px_after']:.3f} px")
         click.echo(f"final: {f['model']}, ray gap RMS {f['ray_gap_rms_mm']:.4f} mm, reprojection RMS "
                    f"{f['reprojection_rms_px']:.3f} px")
+    sm = res.get("smoothing")
+    if sm and sm["tracks"]:
+        import numpy as np
+        raw = np.median([t["raw_sd_px"] for t in sm["tracks"]])
+        smo = np.median([t["smooth_sd_px"] for t in sm["tracks"]])
+        gap = (f"; ray gap RMS {sm['ray_gap_rms_mm']:.4f} mm (raw {sm['ray_gap_rms_mm_raw']:.4f})"
+               if sm.get("ray_gap_rms_mm") is not None else "")
+        click.echo(f"smoothed {len(sm['tracks'])} tracks: median centre sd {raw:.3f} -> {smo:.3f} px{gap}")
     click.echo(f"wrote {out}/track.json")
 
 

@@ -87,6 +87,9 @@ class TrackConfig(StrictModel):
     channel: int | None = Field(None, ge=0, le=2, description="colour frames: use this channel (default luma)")
     loop: bool = True
     lowpass_hz: PositiveFloat | None = Field(None, description="zero-phase low-pass of the 3-D trajectories")
+    smooth: bool = Field(True, description="Kalman/RTS-smooth each 2-D track (process noise and error scale by "
+                                           "maximum likelihood) and triangulate the smoothed centres; the raw "
+                                           "values stay (x_px, y_px; x_mm_raw, ...)")
     max_offset_s: PositiveFloat | None = Field(None, description="search range of the view time offset")
     max_ray_gap_mm: PositiveFloat | None = Field(0.5, description="flag two-view points whose rays pass further "
                                                  "apart (also any above 5x the sequence's median ray gap)")
@@ -317,10 +320,13 @@ def _estimate_diameter(path, seeds: pd.DataFrame, polarity: str, channel) -> flo
 
 def _ray_gap_warnings(points3d: pd.DataFrame, max_mm: float | None) -> list[dict]:
     """Flag two-view points with a large ray gap (:func:`bsipipe.quality.ray_gap_flags`): sets the
-    ``flag`` column of ``points3d`` (``large-ray-gap`` or empty) and returns track.json's warning."""
+    ``flag`` column of ``points3d`` (``large-ray-gap`` or empty) and returns track.json's warning.
+    With smoothing the raw detections' gaps are judged (``ray_gap_mm_raw``): a bad detection
+    shows there, while the smoother has already left it out."""
     from ..quality import ray_gap_flags, warning
 
-    gaps = points3d["ray_gap_mm"].where(points3d["n_views"] == 2).to_numpy(float)
+    col = "ray_gap_mm_raw" if "ray_gap_mm_raw" in points3d else "ray_gap_mm"
+    gaps = points3d[col].where(points3d["n_views"] == 2).to_numpy(float)
     flag, rule = ray_gap_flags(gaps, points3d["marker"].to_numpy(), max_mm=max_mm)
     points3d["flag"] = np.where(flag, "large-ray-gap", "")
     if not flag.any():
@@ -336,7 +342,34 @@ def _ray_gap_warnings(points3d: pd.DataFrame, max_mm: float | None) -> list[dict
                     + f" (flag column of markers3d.csv): {where}",
                     log, n_points=int(len(bad)), **rule,
                     points=[{"frame": int(f), "marker": str(m), "ray_gap_mm": float(g)}
-                            for f, m, g in bad[["frame", "marker", "ray_gap_mm"]].itertuples(index=False)][:200])]
+                            for f, m, g in bad[["frame", "marker", col]].itertuples(index=False)][:200])]
+
+
+def _smooth(table: pd.DataFrame) -> tuple[pd.DataFrame, dict]:
+    """:func:`bsipipe.imaging.smooth.smooth_tracks` on the 2-D table (frames as the clock
+    where there are no time stamps) and the ``smoothing`` section of ``track.json``."""
+    from ..imaging.smooth import smooth_tracks
+    t = table.copy()
+    clock = "s"
+    if t["time_s"].isna().any():
+        t["time_s"] = t["frame"].astype(float)
+        clock = "frame"
+    t["snr"] = t["snr"].where(t["found"].astype(bool))
+    try:
+        sm, models = smooth_tracks(t)
+    except ValueError:          # time stamps that repeat or go back: smooth on the frame clock
+        t["time_s"] = t["frame"].astype(float)
+        clock = "frame"
+        sm, models = smooth_tracks(t)
+    out = table.copy()
+    for c in ("sd_px", "x_px_smooth", "y_px_smooth", "sd_px_smooth", "smooth_outlier"):
+        out[c] = sm[c].to_numpy()
+    return out, {
+        "method": "Kalman filter + Rauch-Tung-Striebel smoother per track and axis, white-noise acceleration; "
+                  "process noise q and the scale of the detector's error model (sd = 0.798 / SNR per axis, "
+                  "the Cramer-Rao bound of a Gaussian spot) chosen per track by maximum likelihood",
+        "clock": clock, "units": {"q": f"px^2/{clock}^3"},
+        "tracks": [m.to_dict() for m in models]}
 
 
 def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diameter_px=None, seeds=None,
@@ -468,15 +501,6 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         points3d = fit.points.copy()
         if time_unit == "frame":
             points3d["time_s"] = np.nan
-        if cfg.lowpass_hz is not None:
-            rate = cfg.fps or (1.0 / np.nanmedian(np.diff(data.ta)) if time_unit == "s" else None)
-            if rate is None:
-                raise InputError("--lowpass-hz needs a frame rate (--fps or time stamps)", key="lowpass_hz")
-            try:
-                points3d = lowpass_trajectories(points3d, cfg.lowpass_hz, rate)
-            except ValueError as e:
-                raise InputError(str(e), key="lowpass_hz") from None
-        warnings += _ray_gap_warnings(points3d, cfg.max_ray_gap_mm)
         # identity swaps found by the loop are corrected in the 2-D table too
         for sw in fit.swaps:
             a, b = sw["markers"]
@@ -490,6 +514,42 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         table["view"] = pd.Categorical(table["view"], categories=views)
         table = table.sort_values(["view", "frame"], kind="stable")
         table["view"] = table["view"].astype(str)
+
+    smoothing = None
+    if cfg.smooth:
+        table, smoothing = _smooth(table)
+        if fit is not None:
+            # triangulate the smoothed centres with the loop's final model (offset as estimated)
+            from ..imaging.track_effects import StereoSpec, stereo_data, stereo_fit
+            sub = table[table["view"].isin(pair)].copy()
+            ok = sub["x_px_smooth"].notna() & sub["y_px_smooth"].notna()
+            sub["x_px"], sub["y_px"] = sub["x_px_smooth"], sub["y_px_smooth"]
+            sub["found"] = sub["found"].astype(bool) & ok
+            if time_unit == "frame":
+                sub["time_s"] = sub["frame"].astype(float)
+            fit = stereo_fit(stereo_data(sub, vpair), StereoSpec(occlusion=fit.spec.occlusion),
+                             fixed_offset_s=fit.params.get("view_time_offset_s"), max_offset_s=cfg.max_offset_s)
+            raw = points3d.set_index(["frame", "marker"])[["x_mm", "y_mm", "z_mm", "ray_gap_mm"]]
+            points3d = fit.points.copy()
+            if time_unit == "frame":
+                points3d["time_s"] = np.nan
+            raw = raw.reindex(pd.MultiIndex.from_frame(points3d[["frame", "marker"]]))
+            for c in ("x_mm", "y_mm", "z_mm", "ray_gap_mm"):
+                points3d[c + "_raw"] = raw[c].to_numpy()
+            two = points3d["n_views"] == 2
+            smoothing["ray_gap_rms_mm"] = (float(np.sqrt(np.mean(points3d.loc[two, "ray_gap_mm"] ** 2)))
+                                           if two.any() else None)
+            smoothing["ray_gap_rms_mm_raw"] = loop_dict["final"]["ray_gap_rms_mm"]
+    if points3d is not None:
+        if cfg.lowpass_hz is not None:
+            rate = cfg.fps or (1.0 / np.nanmedian(np.diff(data.ta)) if time_unit == "s" else None)
+            if rate is None:
+                raise InputError("--lowpass-hz needs a frame rate (--fps or time stamps)", key="lowpass_hz")
+            try:
+                points3d = lowpass_trajectories(points3d, cfg.lowpass_hz, rate)
+            except ValueError as e:
+                raise InputError(str(e), key="lowpass_hz") from None
+        warnings += _ray_gap_warnings(points3d, cfg.max_ray_gap_mm)
 
     # per-marker summary: signal-to-noise, found fraction, events
     markers: dict = {}
@@ -514,6 +574,8 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     rs = ResultSet(out, primary="track.json")
     cols2d = ["view", "frame", "marker", "x_px", "y_px", "time_s", "found", "status", "snr", "amplitude",
               "area_px", "sigma_px", "pred_x_px", "pred_y_px", "gate_px"]
+    if smoothing is not None:
+        cols2d += ["sd_px", "x_px_smooth", "y_px_smooth", "sd_px_smooth", "smooth_outlier"]
     rs.add_csv("markers2d.csv", table[cols2d], float_format="%.6f", na_rep="")
     from ..io.xmalab import format_xmalab_2d, format_xmalab_3d
     marker_order = list(dict.fromkeys(table["marker"]))
@@ -529,9 +591,12 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     }
     if cross_view is not None:
         result["cross_view_names"] = cross_view
+    if smoothing is not None:
+        result["smoothing"] = smoothing
     if points3d is not None:
         cols3d = ["frame", "time_s", "marker", "x_mm", "y_mm", "z_mm", "ray_gap_mm", "ray_gap_signed_mm",
                   "reproj_err_px", f"reproj_{pair[0]}_px", f"reproj_{pair[1]}_px", "n_views", "source", "flag"]
+        cols3d += [c for c in points3d.columns if c.endswith("_raw")]
         cols3d += [c for c in points3d.columns if c.endswith("_filt")] + (["filtered"] if "filtered" in points3d else [])
         rs.add_csv("markers3d.csv", points3d[cols3d], float_format="%.6f", na_rep="")
         rs.add_text("xmalab_3d.csv", format_xmalab_3d(points3d[points3d["n_views"] > 0], marker_order,
