@@ -515,8 +515,10 @@ def _export_fe_config(section: dict, twin, sdir, base: Path, src: Path, where: s
     """export-fe's config (validated by export-fe's model), the stages it reads and its outside inputs.
 
     Inputs default to the study's own results (fit-ogden's fit.json, register's
-    registration.json and markers_ct.csv, the twin's indentation log).  On the twin, an
-    indentor without tracked markers gets the twin's rig geometry: the flat end's rest
+    registration.json and markers_ct.csv, the twin's indentation log).  On the twin, the
+    indentor's beads (I1, I2 on a collar, ``synth.sequence.indentor_markers``) are its tracked
+    markers, their midpoint ``indentor_marker_height_mm`` above the flat end; a twin
+    indentor without beads gets the twin's rig geometry instead: the flat end's rest
     position and direction in the X-ray frame (cam1's camera frame, where ``track``
     triangulates) and the clock offset between the log and the X-ray frames, as a user would
     measure them on the rig (``indentor.pose_xray``, ``log.clock_offset_s``).
@@ -537,6 +539,11 @@ def _export_fe_config(section: dict, twin, sdir, base: Path, src: Path, where: s
     if twin is not None:
         inputs["log"] = str(sdir["synth"] / "indentation_log.csv")
         after.append("synth")
+    if twin is not None and d.get("indentor") is None and twin.sequence.indentor_markers:
+        # the twin's indentor carries beads: track it like a user would (clock offset fitted)
+        d["indentor"] = {"diameter_mm": twin.sequence.indentor_diameter_mm,
+                         "markers": [f"I{k + 1}" for k in range(twin.sequence.indentor_markers)],
+                         "tip_offset_mm": twin.sequence.indentor_marker_height_mm}
     indentor = d.get("indentor")
     if isinstance(indentor, dict) and indentor.get("markers"):
         inputs["markers3d"] = str(sdir["track"] / "markers3d.csv")

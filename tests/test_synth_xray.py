@@ -477,6 +477,9 @@ def test_slicer_files_parse_back(small_run):
     # the written coordinates are the world positions moved by the CT transform
     R, t = np.asarray(truth["ct"]["R"]), np.asarray(truth["ct"]["t_mm"])
     for name, rec in truth["sequence"]["markers"].items():
+        if rec["kind"] == "indentor":      # mounted after the CT: not in the CT's markups
+            assert name not in written
+            continue
         assert np.allclose(R @ np.asarray(rec["position0_mm"]) + t, written[name], atol=1e-9)
 
 
@@ -517,3 +520,27 @@ def test_sample_configs_validate():
     root = Path(__file__).resolve().parents[1] / "configs"
     for name in ("synth_default.yaml", "synth_sdistortion.yaml", "synth_offset.yaml"):
         load_config(SynthConfig, root / name)
+
+
+def test_indentor_beads_ride_the_indentor_and_stay_clear_of_the_rod():
+    """The indentor's two beads (I1, I2) move with its flat end, their midpoint on its axis
+    ``indentor_marker_height_mm`` above it, and each C-arm sees both outside the rod's shadow."""
+    from bsipipe.synth.config import SynthConfig
+    from bsipipe.synth.twin import Twin
+
+    cfg = SynthConfig.model_validate({"calibration": {"views": 0, "stereo_views": 0}, "sequence": {"n_frames": 60}})
+    tw = Twin(cfg)
+    for _ in tw.sequence_frames():
+        pass
+    truth = tw.truth()
+    seq = truth["sequence"]
+    tip = np.asarray(seq["indentor"]["tip_mm"])
+    into = np.asarray(seq["indentor"]["direction"])
+    I = {n: np.asarray(seq["trajectories_mm"][n]) for n in ("I1", "I2")}
+    mid = 0.5 * (I["I1"] + I["I2"])
+    assert np.allclose(mid, tip - cfg.sequence.indentor_marker_height_mm * into, atol=1e-9)
+    assert np.ptp(np.linalg.norm(I["I1"] - tip, axis=1)) < 1e-9          # rigid with the indentor
+    assert np.ptp(tip @ into) > 4.0                                       # and the indentor moves
+    for v in ("cam1", "cam2"):
+        assert all(seq["visible"][v]["I1"]) and all(seq["visible"][v]["I2"])
+    assert {s["marker"] for s in tw.seeds()} >= {"I1", "I2"}

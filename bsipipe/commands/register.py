@@ -310,7 +310,8 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
                     skull["max_translation_mm"], int(frames[skull["frame_of_max"]]))
     skull["frame_of_max"] = int(frames[skull["frame_of_max"]])
 
-    roles = {n: "marker" for n in t_names}
+    # a tracked point the CT does not hold (e.g. a bead on the indentor) is "xray-only"
+    roles = {n: "marker" if n in ct_pos else "xray-only" for n in t_names}
     for r in found:
         roles[r] = "moved-reference" if r in spec.moved else "reference"
     table = markers_to_ct(tracks, T, F, roles)

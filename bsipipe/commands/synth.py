@@ -143,7 +143,8 @@ def run(config: str | os.PathLike, out: str | os.PathLike) -> dict:
                             metadata={"Test": "in situ indentation (equivalent cylinder geometry)",
                                       "Indenter diameter (mm)": f"{cfg.sequence.indentor_diameter_mm:g}"})
             ct = twin.ct_markers()
-            desc = [twin.scene.markers[i].kind for i in range(len(ct["names"]))]
+            kind = {m.name: m.kind for m in twin.scene.markers}
+            desc = [kind[n] for n in ct["names"]]
             rs.add_text("ct_markers.fcsv", format_fcsv(ct["names"], ct["written_mm"], "LPS", desc))
             rs.add_text("ct_markers.mrk.json", format_mrk_json(ct["names"], ct["written_mm"], "LPS", desc,
                                                                name="ct_markers"))

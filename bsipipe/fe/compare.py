@@ -55,14 +55,15 @@ def _select(table: pd.DataFrame, markers):
     if markers:
         return table[table["marker"].isin(list(markers))]
     if "role" in table.columns:
-        return table[~table["role"].astype(str).isin(["reference"])]
+        return table[~table["role"].astype(str).isin(["reference", "xray-only"])]
     return table
 
 
 def markers_at_frame(table: pd.DataFrame, frame: int, markers=None) -> MarkerFrame:
     """The markers of ``table`` (``markers_ct.csv``) in ``frame``: reference positions and
     measured displacements.  ``markers`` (names) selects; by default every marker whose
-    ``role`` is not ``reference`` (skull-fixed references do not move with the tissue)."""
+    ``role`` is neither ``reference`` (skull-fixed references do not move with the tissue)
+    nor ``xray-only`` (a point the CT does not hold, such as a bead on the indentor)."""
     t = _select(table, markers)
     rows = t[t["frame"] == frame]
     skipped = {}

@@ -141,6 +141,12 @@ class SequenceConfig(StrictModel):
     marker_diameter_mm: PositiveFloat = 0.5
     n_references: int = Field(4, ge=0, le=8, description="reference markers at the craniotomy corners")
     reference_diameter_mm: PositiveFloat = 1.0
+    indentor_markers: Literal[0, 2] = Field(
+        2, description="steel beads on a radiolucent collar of the indentor, either side of its axis, so the "
+                       "indentor is tracked in the X-ray frames like the markers (I1, I2)")
+    indentor_marker_diameter_mm: PositiveFloat = 1.0
+    indentor_marker_height_mm: PositiveFloat = Field(8.0, description="beads' centre above the flat end, along the axis")
+    indentor_marker_offset_mm: PositiveFloat = Field(6.0, description="beads' centre from the indentor's axis")
     craniotomy_mm: PositiveFloat = Field(20.0, description="side of the square craniotomy")
     tissue_mu_pa: PositiveFloat = Field(720.0, description="log: one-term Ogden mu of the brain (2 mu / alpha^2 convention)")
     tissue_alpha: float = Field(-4.7, description="log: one-term Ogden alpha")

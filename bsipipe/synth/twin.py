@@ -452,10 +452,10 @@ def indentation_displacement(X, surface_point, into, depth_mm: float, z0_mm: flo
 @dataclass
 class Marker:
     name: str
-    kind: str          # "implanted" | "reference"
+    kind: str          # "implanted" | "reference" | "indentor"
     diameter_mm: float
-    position0_mm: np.ndarray
-    moves: bool        # follows the tissue
+    position0_mm: np.ndarray    # at the start (indentor travel 0)
+    moves: bool        # follows the tissue (an indentor bead follows the indentor instead)
 
 
 @dataclass
@@ -515,12 +515,15 @@ class IndentationScene:
         t = np.atleast_1d(np.asarray(t, float))
         delta = self.indentation_mm(t)
         X0 = np.array([m.position0_mm for m in self.markers]).reshape(-1, 3)
-        moves = np.array([m.moves for m in self.markers], bool)
+        moves = np.array([m.moves and m.kind != "indentor" for m in self.markers], bool)
+        on_rod = np.array([m.kind == "indentor" for m in self.markers], bool)
         out = np.repeat(X0[None], len(t), axis=0)
         if len(X0) == 0:
             return out
         unit = indentation_displacement(X0, self.surface_mm, self.into, 1.0, self.z0_mm)
         out[:, moves] += delta[:, None, None] * unit[None, moves]
+        if on_rod.any():
+            out[:, on_rod] += np.atleast_1d(self.travel_mm(t))[:, None, None] * self.into
         return out
 
     def tissue_line_integral(self, arm: CArm) -> np.ndarray:
@@ -631,6 +634,14 @@ def build_scene(cfg: SynthConfig, arms: dict[str, CArm], times: dict[str, np.nda
         return b / np.linalg.norm(b)
 
     def draw(kind: str, k: int) -> Marker:
+        if kind == "indentor":
+            # a radiolucent collar on the shaft carries two beads either side of the axis, along
+            # the bisector of the two beams, so each C-arm sees both clear of the steel rod
+            b = horiz(VIEWS[0]) + horiz(VIEWS[1])
+            b = b / np.linalg.norm(b) if np.linalg.norm(b) > 1e-6 else horiz(VIEWS[0])
+            tip0 = surface - sq.gap_mm * into
+            X = tip0 - sq.indentor_marker_height_mm * into + (1 if k == 0 else -1) * sq.indentor_marker_offset_mm * b
+            return Marker(f"I{k + 1}", "indentor", sq.indentor_marker_diameter_mm, X, True)
         if kind == "reference":
             c = sq.craniotomy_mm / 2
             ang = psi + 2 * np.pi * k / sq.n_references
@@ -651,7 +662,8 @@ def build_scene(cfg: SynthConfig, arms: dict[str, CArm], times: dict[str, np.nda
             depth = rng.uniform(2.0, 10.0)
         return Marker(name, "implanted", sq.marker_diameter_mm, surface + off + depth * into, True)
 
-    kinds = [("reference", k) for k in range(sq.n_references)] + [("implanted", k) for k in range(sq.n_markers)]
+    kinds = ([("indentor", k) for k in range(sq.indentor_markers)] + [("reference", k) for k in range(sq.n_references)]
+             + [("implanted", k) for k in range(sq.n_markers)])
     for attempt in range(40):
         psi = np.deg2rad(rng.uniform(15, 30)) + np.pi / 4
         placed: list[Marker] = []
@@ -895,8 +907,9 @@ class Twin:
         with optional localisation noise."""
         R, t = self.ct_transform()
         rng = stream(self.cfg.seed, "ct_noise")
-        names = [m.name for m in self.scene.markers]
-        X0 = np.array([m.position0_mm for m in self.scene.markers]).reshape(-1, 3)
+        in_ct = [m for m in self.scene.markers if m.kind != "indentor"]    # the CT was taken before
+        names = [m.name for m in in_ct]                                     # the indentor was mounted
+        X0 = np.array([m.position0_mm for m in in_ct]).reshape(-1, 3)
         exact = X0 @ R.T + t
         noisy = exact + rng.normal(0, self.cfg.ct.noise_mm, exact.shape) if self.cfg.ct.noise_mm > 0 else exact
         return {"names": names, "exact_mm": exact, "written_mm": noisy, "R": R, "t_mm": t}
