@@ -263,6 +263,20 @@ def test_tiny_study_end_to_end(clean):
     assert summary["counts"]["failed"] == 0 and "provenance" in summary
 
 
+def test_tiny_study_against_the_twins_truth(clean):
+    """The chain from rendered frames to the FE hand-off scored on the tiny (256 px) twin:
+    the sample study's own figures come from ``scripts/twin_check.py results/sheep1``."""
+    from bsipipe.synth.check import format_check, twin_check
+    out, status = clean
+    c = twin_check(out / "tiny")
+    print(format_check(c))
+    assert c["registration"]["rms_mm"] < 0.1
+    assert c["indentor"]["source"].startswith("markers3d.csv")      # tracked on its beads
+    assert c["indentor"]["trajectory"]["n"] >= 5 and c["indentor"]["trajectory"]["max_mm"] < 0.1
+    assert c["markers_fe"]["displacement"]["n"] >= 30 and c["markers_fe"]["displacement"]["rms_mm"] < 0.1
+    assert abs(c["indentor"]["depth_mm"] - c["indentor"]["depth_true_mm"]) < 0.2
+
+
 def test_second_run_redoes_nothing_and_one_value_redoes_downstream(clean, tmp_path):
     out = _copy(clean[0], tmp_path / "out")
     t0 = time.perf_counter()

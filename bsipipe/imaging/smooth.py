@@ -76,59 +76,86 @@ def centre_sd_px(snr) -> np.ndarray:
     return CRB_FACTOR / np.asarray(snr, float)
 
 
-def _filter(t: np.ndarray, z: np.ndarray, r: np.ndarray, q: np.ndarray, keep: bool = False):
+def _filter(t: np.ndarray, z: np.ndarray, r: np.ndarray, q: np.ndarray, keep: bool = False,
+            scale2: np.ndarray | None = None):
     """Kalman filter of lanes in lockstep.
 
-    ``t`` (n,) times; ``z`` (n, L) measurements (NaN: none); ``r`` (n, L) measurement
-    variances; ``q`` (L,) process noise.  Returns the log-likelihood per lane and, with
-    ``keep``, the filtered and predicted states for the smoother.
+    ``t`` (n,) times; ``z`` (n, R) measurements (NaN: none); ``r`` (n, R) measurement
+    variances.  Without ``scale2`` there is one lane per column: ``q`` (R,) process noise.
+    With ``scale2`` (G,) every column is filtered under G models at once, lane (i, g) with
+    variance ``r[:, i] * scale2[g]`` and process noise ``q[g]`` (G,): the lanes of a column
+    share its measurements and its clock, so these are not copied G times.  Returns the
+    log-likelihood per lane ((R,) or (R, G)) and, with ``keep`` (no ``scale2``), the
+    filtered and predicted states for the smoother.
     """
-    n, L = z.shape
-    x = np.zeros(L)
-    v = np.zeros(L)
-    p00 = np.zeros(L)
-    p01 = np.zeros(L)
-    p11 = np.zeros(L)
-    started = np.zeros(L, bool)
-    last_t = np.zeros(L)
-    ll = np.zeros(L)
+    n, R = z.shape
+    grid = scale2 is not None
+    shape = (R, len(scale2)) if grid else (R,)
+    qq = np.asarray(q, float)[None, :] if grid else np.asarray(q, float)
+    x = np.zeros(shape)
+    v = np.zeros(shape)
+    p00 = np.zeros(shape)
+    p01 = np.zeros(shape)
+    p11 = np.zeros(shape)
+    # which lanes have started and their last time depend on the measurements only: per column
+    started = np.zeros(R, bool)
+    last_t = np.zeros(R)
+    ll = np.zeros(shape)
     if keep:
-        F = np.zeros((n, 5, L))      # filtered x, v, p00, p01, p11
-        Pr = np.zeros((n, 5, L))     # predicted, the same
-        dts = np.zeros((n, L))
+        F = np.zeros((n, 5, R))      # filtered x, v, p00, p01, p11
+        Pr = np.zeros((n, 5, R))     # predicted, the same
+        dts = np.zeros((n, R))
     obs = np.isfinite(z)
+
+    def col(a):                      # a per-column array against the lanes
+        return a[:, None] if grid else a
     for k in range(n):
         dt = np.where(started, t[k] - last_t, 0.0)
         dt2, dt3 = dt * dt, dt * dt * dt
+        dtc, dt2c, dt3c = col(dt), col(dt2), col(dt3)
         # predict (only lanes already started move; others stay zero)
-        x = x + dt * v
-        n00 = p00 + 2 * dt * p01 + dt2 * p11 + q * dt3 / 3
-        n01 = p01 + dt * p11 + q * dt2 / 2
-        n11 = p11 + q * dt
+        x = x + dtc * v
+        n00 = p00 + 2 * dtc * p01 + dt2c * p11 + qq * dt3c / 3
+        n01 = p01 + dtc * p11 + qq * dt2c / 2
+        n11 = p11 + qq * dtc
         p00, p01, p11 = n00, n01, n11
         if keep:
             Pr[k] = (x, v, p00, p01, p11)
             dts[k] = dt
         o = obs[k]
         upd = o & started
-        if upd.any():
+        if upd.all():
+            # every lane measured (the usual frame): the masked update below without its masks
+            rk = col(r[k]) * scale2[None, :] if grid else r[k]
+            S = p00 + rk
+            innov = col(z[k]) - x
+            ll += -0.5 * (np.log(2 * np.pi * S) + innov * innov / S)
+            k0 = p00 / S
+            k1 = p01 / S
+            x = x + k0 * innov
+            v = v + k1 * innov
+            p00, p01, p11 = p00 - k0 * p00, p01 - k0 * p01, p11 - k1 * p01
+        elif upd.any():
+            u = col(upd)
             zk = np.where(upd, z[k], 0.0)
-            S = p00 + r[k]
-            innov = zk - x
-            ll += np.where(upd, -0.5 * (np.log(2 * np.pi * S) + innov * innov / S), 0.0)
-            k0 = np.where(upd, p00 / S, 0.0)
-            k1 = np.where(upd, p01 / S, 0.0)
+            rk = col(r[k]) * scale2[None, :] if grid else r[k]
+            S = p00 + rk
+            innov = col(zk) - x
+            ll += np.where(u, -0.5 * (np.log(2 * np.pi * S) + innov * innov / S), 0.0)
+            k0 = np.where(u, p00 / S, 0.0)
+            k1 = np.where(u, p01 / S, 0.0)
             x = x + k0 * innov
             v = v + k1 * innov
             p00, p01, p11 = p00 - k0 * p00, p01 - k0 * p01, p11 - k1 * p01
         new = o & ~started
         if new.any():
             # a diffuse start: position from the first measurement, velocity unknown
-            x = np.where(new, z[k], x)
-            v = np.where(new, 0.0, v)
-            p00 = np.where(new, r[k], p00)
-            p01 = np.where(new, 0.0, p01)
-            p11 = np.where(new, 1e6, p11)
+            u = col(new)
+            x = np.where(u, col(z[k]), x)
+            v = np.where(u, 0.0, v)
+            p00 = np.where(u, col(r[k]) * scale2[None, :] if grid else r[k], p00)
+            p01 = np.where(u, 0.0, p01)
+            p11 = np.where(u, 1e6, p11)
             started |= new
         last_t = np.where(started, t[k], last_t)
         if keep:
@@ -172,22 +199,26 @@ def _rts(F: np.ndarray, Pr: np.ndarray, dts: np.ndarray):
 
 def _spike(times: np.ndarray, Zu: np.ndarray, sd: np.ndarray, k_sigma: float = 3.0) -> np.ndarray:
     """(n, m) True where a detection is off the straight-line extrapolations of the two
-    detections before it and of the two after it by more than ``k_sigma`` times the
-    extrapolation's sd (sqrt(1 + 2 r + ...) sd, about 2.45 sd at a constant frame rate), on
-    either side that has two detections (True where neither side has)."""
+    detections before it and of the two after it, each by more than ``k_sigma`` times the
+    extrapolation's sd (sqrt(1 + (1 + r)^2 + r^2) sd, 2.45 sd at a constant frame rate).
+    A detection without two on each side (a track's first two and last two) is never a
+    spike: a marker that starts or stops moving there looks the same."""
     n, m = Zu.shape[:2]
     off = np.ones((n, m), bool)
     for step in (1, -1):
-        e = np.full((n, m), np.inf)
+        e = np.zeros((n, m))
         for j in range(m):
             idx = np.flatnonzero(np.isfinite(Zu[:, j, 0]))
             if step == -1:
                 idx = idx[::-1]
-            for a, b, k in zip(idx[:-2], idx[1:-1], idx[2:]):
-                r = (times[k] - times[b]) / (times[b] - times[a])
-                pred = Zu[b, j] + r * (Zu[b, j] - Zu[a, j])
-                s = sd[k, j] * np.sqrt(1.0 + (1 + r) ** 2 + r ** 2)
-                e[k, j] = np.max(np.abs(Zu[k, j] - pred)) / s
+            if len(idx) < 3:
+                continue
+            # every consecutive triple (a, b, k) of the marker's detections at once
+            a, b, k = idx[:-2], idx[1:-1], idx[2:]
+            r = (times[k] - times[b]) / (times[b] - times[a])
+            pred = Zu[b, j] + r[:, None] * (Zu[b, j] - Zu[a, j])
+            s = sd[k, j] * np.sqrt(1.0 + (1 + r) ** 2 + r ** 2)
+            e[k, j] = np.max(np.abs(Zu[k, j] - pred), axis=1) / s
         off &= e > k_sigma
     return off
 
@@ -199,10 +230,8 @@ def _fit_view(times, Zu, SDu, Q, Sc):
     ``q``, ``scale`` (m,), smoothed positions and variances (n, 2 m; lane 2 marker + axis)."""
     n, m = Zu.shape[:2]
     G = Q.size
-    lanes_z = np.repeat(Zu.reshape(n, 2 * m), G, axis=1)
-    lanes_r = np.repeat(np.repeat(SDu, 2, axis=1) ** 2, G, axis=1) * np.tile(Sc ** 2, 2 * m)
-    lanes_q = np.tile(Q, 2 * m)
-    (ll,) = _filter(times, lanes_z, lanes_r, lanes_q)
+    # every (marker, axis) under every grid model (q, scale) at once: lanes (2 m, G)
+    (ll,) = _filter(times, Zu.reshape(n, 2 * m), np.repeat(SDu, 2, axis=1) ** 2, Q, scale2=Sc ** 2)
     ll = ll.reshape(m, 2, G).sum(axis=1)          # both axes
     best = np.argmax(ll, axis=1)
     q_best, s_best = Q[best], Sc[best]

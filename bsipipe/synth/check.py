@@ -81,7 +81,7 @@ def twin_check(trial_dir) -> dict:
     inside = (t_fe >= 0) & (t_fe <= amp["time_s"].max())
     est = np.column_stack([np.interp(t_fe, amp["time_s"], amp[c]) for c in ("tip_x_mm", "tip_y_mm", "tip_z_mm")])
     err = np.linalg.norm(est - tip, axis=1)[inside]
-    depth_true = float(np.max(seq["indentor"]["indentation_mm"]))
+    depth_true = float(seq["indentor"]["depth_mm"])           # the log's whole indentation
     out["indentor"] = {"source": man["indentor"]["source"], "trajectory": _stats(err),
                        "depth_mm": float(man["indentor"]["depth_mm"]), "depth_true_mm": depth_true,
                        "contact_point_error_mm": float(np.linalg.norm(
