@@ -119,3 +119,13 @@ def test_a_bad_detection_is_left_out_not_followed():
     assert out["smooth_outlier"].tolist() == [i == 17 for i in range(40)]
     assert models[0].n_outliers == 1
     assert abs(out.loc[17, "y_px_smooth"] - yt[17]) < 0.3
+
+
+def test_a_marker_that_starts_moving_after_the_first_frame_is_not_an_outlier():
+    n = 12
+    t = np.arange(n) * 2.0
+    y = 50 + np.where(np.arange(n) >= 1, 1.0 * (np.arange(n) - 0.5), 0.0)   # at rest, then 1 px/frame
+    tab = _track(np.full(n, 100.0), y, np.full(n, 30.0), t)
+    out, models = smooth_tracks(tab)
+    assert not out["smooth_outlier"].any()
+    assert out["y_px_smooth"].notna().all()
