@@ -28,6 +28,12 @@ study: $(STAMP) ccx
 test: $(STAMP) ccx
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q
 
+# SIGKILL `bsipipe study` of the sample study at 20 random moments, rerun, and compare with a clean run
+# (issue 7); runs in a scratch folder (not results/), about 20 clean-study times.
+.PHONY: kill-trials
+kill-trials: $(STAMP) ccx
+	$(BIN)/python scripts/kill_rerun_trials.py --config configs/study.yaml --trials 20
+
 bench: $(STAMP)
 	$(BIN)/python bench/run.py
 

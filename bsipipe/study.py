@@ -341,11 +341,18 @@ def _is_done(folder: Path, key: str) -> tuple[bool, str]:
     return True, ""
 
 
+def _stamp_temp(p: Path) -> bool:
+    """Whether ``p`` is the temporary file of an unfinished write of the stage stamp."""
+    return p.is_file() and p.name.startswith(f".{STAMP}.") and p.name.endswith(".tmp")
+
+
 def _prepare_folder(folder: Path) -> None:
     """Mark the folder as running (the previous run stops counting as done), then empty it."""
     if folder.exists() and not folder.is_dir():
         raise InputError("exists and is not a folder; choose another study output folder", path=folder)
-    if folder.is_dir() and read_stamp(folder) is None and any(folder.iterdir()):
+    # A run killed while writing its first stamp leaves only that write's temporary file
+    # (``..stage.json.XXXX.tmp``, atomic_write_bytes): the folder is still the study's.
+    if folder.is_dir() and read_stamp(folder) is None and any(not _stamp_temp(p) for p in folder.iterdir()):
         raise InputError("folder exists and was not written by bsipipe study (no .stage.json); "
                          "choose another study output folder", path=folder)
     folder.mkdir(parents=True, exist_ok=True)

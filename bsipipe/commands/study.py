@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import tempfile
 import time
 from pathlib import Path
 from typing import Callable, Sequence
@@ -146,9 +145,14 @@ def fe_solve(deck: str | os.PathLike, *, out: str | os.PathLike, timeout_s: floa
         raise ProcessingError("CalculiX 'ccx' is not on PATH (apt-get install calculix-ccx)", path=deck)
     rs = ResultSet(out, primary="fe_solve.json")
     t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory(prefix="bsipipe-fe-solve-") as tmp:
-        work = Path(tmp) / "run"
-        shutil.copytree(deck.parent, work)   # the deck's *INCLUDE files sit beside it
+    # CalculiX runs in a hidden folder inside the stage's own: a run killed mid-solve leaves it
+    # there, and the rerun empties the stage folder (a system temp folder would be left behind)
+    work = Path(out) / ".ccx-work"
+    if work.exists():
+        shutil.rmtree(work)
+    work.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copytree(deck.parent, work)   # the deck's *INCLUDE files sit beside it
+    try:
         try:
             res = run_ccx(deck.read_text(encoding="utf-8"), jobname="job", timeout_s=timeout_s, keep_dir=work)
         except CcxError as e:
@@ -168,6 +172,8 @@ def fe_solve(deck: str | os.PathLike, *, out: str | os.PathLike, timeout_s: floa
             peaks.append(float(np.sqrt((d.u_mm ** 2).sum(axis=1)).max()) if len(d.u_mm) else 0.0)
         k = int(np.argmax(peaks))
         peak = read_frd(frd, choose=k)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
     # read_frd gives mm; the table is in the deck's length unit, as compare reads it with the mesh
     scale = 1e-3 if length_unit == "m" else 1.0
     table = pd.DataFrame({"node": peak.node_ids.astype(int)})
