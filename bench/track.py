@@ -33,7 +33,8 @@ Rows
    their wall times swing with the load; CPU time is what an idle machine's wall time
    would be for these single-threaded programs.  From the two lengths the CPU time is split
    into a fixed part (start-up, imports, the loop, figures) and a per-frame part, for the
-   command and for decoding.
+   command and for decoding; the Kalman/RTS smoother's share is timed on each command's own
+   2-D table (:func:`bsipipe.imaging.smooth.smooth_tracks`, in this process).
 3. **peak memory** of ``bsipipe track`` at 200 and 2,000 frames per view: the child's own
    high-water mark (``VmHWM``, :func:`bench.common.run_child`).  Target: flat within 20 %,
    and under 1 GiB at 2,000.
@@ -322,6 +323,21 @@ def _run_decode(seq: Path):
     return r, info
 
 
+def _time_smoothing(markers2d_csv: Path) -> dict:
+    """CPU and wall time of :func:`bsipipe.imaging.smooth.smooth_tracks` on a command's 2-D
+    table (time stamps and SNR as ``bsipipe track`` passes them)."""
+    import pandas as pd
+
+    from bsipipe.imaging.smooth import smooth_tracks
+    t = pd.read_csv(markers2d_csv, dtype={"view": str, "marker": str})
+    t = t[["view", "frame", "time_s", "marker", "x_px", "y_px", "snr", "found"]].copy()
+    t["snr"] = t["snr"].where(t["found"].astype(bool))
+    if t["time_s"].isna().any():
+        t["time_s"] = t["frame"].astype(float)
+    tm, _ = timed(lambda: smooth_tracks(t), repeats=1)
+    return {"cpu_s": tm["cpu_min_s"], "wall_s": tm["min_s"], "n_rows": int(len(t))}
+
+
 def bench_command(src: Path, quick: bool, say=print) -> tuple[list[Row], dict]:
     cases = [(N_FRAMES, src)]
     if not quick:
@@ -368,6 +384,20 @@ def bench_command(src: Path, quick: bool, say=print) -> tuple[list[Row], dict]:
                         "<= 1.5x (CPU)", (r <= TARGET_CMD_OVER_DECODE) if r is not None else None, note=note,
                         values={"bsipipe_s": cmd.wall_s, "decode_s": dec.wall_s, "bsipipe_cpu_s": cmd.cpu_s,
                                 "decode_cpu_s": dec.cpu_s}))
+    # the Kalman/RTS smoother's share (on by default): smooth_tracks timed in this process on
+    # each command's own 2-D table, as the command calls it
+    for n in (N_FRAMES, N_LONG):
+        d = det.get(str(n))
+        if d is None or d["command"]["exit"] != 0:
+            continue
+        t_sm = _time_smoothing(OUT / f"track{n}" / "markers2d.csv")
+        d["smoothing"] = t_sm
+        say(f"  {n} frames/view: Kalman/RTS smoothing (smooth_tracks on the command's markers2d.csv) CPU "
+            f"{fmt_s(t_sm['cpu_s'])} ({1e3 * t_sm['cpu_s'] / (len(VIEWS) * n):.2f} ms/frame), "
+            f"{100 * t_sm['cpu_s'] / d['command']['cpu_s']:.0f} % of the command's CPU")
+        for r in rows:
+            if r.benchmark == f"track command vs decode, {n} frames/view":
+                r.note += f"; of the command's CPU, Kalman/RTS smoothing {fmt_s(t_sm['cpu_s'])}"
     # the 2-D-only command at 200 frames: what triangulation + loop add
     cmd2d, _ = _run_command(src, src, f"{N_FRAMES}_2d", calibration=False)
     det["command_2d_only_200"] = {"wall_s": cmd2d.wall_s, "cpu_s": cmd2d.cpu_s,

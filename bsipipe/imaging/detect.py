@@ -210,6 +210,26 @@ def _gauss_kernel(sigma_px: float) -> np.ndarray:
     return cv2.getGaussianKernel(int(round(sigma_px * 8 + 1)) | 1, sigma_px, cv2.CV_32F)
 
 
+try:                                   # the batched LAPACK solver np.linalg.solve wraps
+    from numpy.linalg._umath_linalg import solve as _gesv
+except ImportError:                    # pragma: no cover - a NumPy without it
+    _gesv = None
+
+
+def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.linalg.solve(a, b)`` for stacks of small systems (a (N, k, k), b (N, k, 1)): the
+    same LAPACK routine and values without the wrapper's checks and error-state context
+    (three times the solve itself on a frame's few 5 x 5 systems).  Where a result is not
+    finite (a singular or non-finite system) ``np.linalg.solve`` is called, so a singular
+    matrix still raises ``LinAlgError`` as before."""
+    if _gesv is not None:
+        with np.errstate(all="ignore"):
+            x = _gesv(a, b)
+        if np.isfinite(x).all():
+            return x
+    return np.linalg.solve(a, b)
+
+
 def _clamp(x, lo, hi):
     """``np.clip`` for the per-frame path: the same values from two ufunc calls, without
     ``np.clip``'s Python-level dispatch (a dozen microseconds a call, dozens of calls a frame)."""
@@ -397,6 +417,7 @@ class _Geo:
     support: np.ndarray     # (K,) indices of pixels a fit may use (near the patch centre)
     support_r: np.ndarray   # (K,) their distance from the patch centre
     A_ring: np.ndarray      # (R, 3) the plane design on the ring
+    AA_ring: np.ndarray     # (R, 9) each ring row's outer product A_r A_r^T, flattened
 
 
 @functools.lru_cache(maxsize=32)
@@ -409,7 +430,9 @@ def _geo(diameter_px: float, blur_px: float, radius: float) -> _Geo:
     rr = np.hypot(dx, dy)
     A = np.column_stack([np.ones_like(dx), dx, dy])
     support = np.flatnonzero(rr <= radius + 3.0)
-    return _Geo(half, dx, dy, rr > r_signal, A, float(radius), support, rr[support], A[rr > r_signal])
+    A_ring = A[rr > r_signal]
+    AA_ring = (A_ring[:, :, None] * A_ring[:, None, :]).reshape(-1, 9)
+    return _Geo(half, dx, dy, rr > r_signal, A, float(radius), support, rr[support], A_ring, AA_ring)
 
 
 def _gather(img: np.ndarray, ix: np.ndarray, iy: np.ndarray, half: int) -> np.ndarray:
@@ -488,10 +511,13 @@ def _plane_removed(p: np.ndarray, geo: _Geo, sign: float, valid: np.ndarray | No
     mad = np.where(np.isfinite(mad) & (mad > 0), mad, np.inf)
     w = w0 & (dev <= 3 * mad[:, None] + 1e-9)
     for it in range(2):
-        WAt = w[:, None, :] * A.T[None]                                # (N, 3, R): weighted design, transposed
-        M = WAt @ A + 1e-9 * _EYE3
-        b = WAt @ r[:, :, None]
-        coef = np.linalg.solve(M, b)[..., 0]
+        # normal equations A^T W A and A^T W r as two plain matrix products: the weights are 0/1
+        # and A holds small integers, so for 8/16-bit pixels every product and sum is exact
+        # and the values do not depend on the order of summation (float frames: to rounding)
+        wf = w.astype(np.float64)
+        M = (wf @ geo.AA_ring).reshape(-1, 3, 3) + 1e-9 * _EYE3
+        b = ((wf * r) @ A)[:, :, None]
+        coef = _solve(M, b)[..., 0]
         if it == 1:
             break
         res = r - coef @ A.T
@@ -511,8 +537,11 @@ def _above_peak_excluded(s: np.ndarray, geo: _Geo, valid: np.ndarray | None) -> 
     P = 2 * geo.half + 1
     near = np.hypot(geo.dx, geo.dy) <= 1.0
     peak = s[:, near].max(axis=1)
+    above = s > peak[:, None]
+    if not above.any():                # nothing above the peak at all: no noise estimate needed
+        return valid
     noise = _robust_sd(s[:, geo.ring], axis=1)
-    hot = s > (peak + 3 * noise)[:, None]
+    hot = above & (s > (peak + 3 * noise)[:, None])
     if not hot.any():
         return valid
     h = hot.reshape(-1, P, P)
@@ -601,10 +630,11 @@ def _gaussian_fit(s: np.ndarray, geo: _Geo, start: np.ndarray, sigma0: float,
     X, Y = geo.dx[sup][None], geo.dy[sup][None]
     S = s[:, sup]
     n = len(S)
-    win = (np.hypot(X - start[:, 0, None], Y - start[:, 1, None]) <= geo.radius + 1.0).astype(np.float64)
+    dist = np.hypot(X - start[:, 0, None], Y - start[:, 1, None])
+    win = (dist <= geo.radius + 1.0).astype(np.float64)
     if valid is not None:
         win = win * valid[:, sup]
-    amp0 = np.maximum((S * (np.hypot(X - start[:, 0, None], Y - start[:, 1, None]) <= 1.0)).max(axis=1), 1e-6)
+    amp0 = np.maximum((S * (dist <= 1.0)).max(axis=1), 1e-6)
     # parameters (N, 5): x0, y0, sigma, amplitude, background, updated as one array
     P = np.column_stack([start[:, 0], start[:, 1], np.full(n, float(sigma0)), amp0, np.zeros(n)])
     lam = np.full(n, 1e-3)
@@ -633,7 +663,7 @@ def _gaussian_fit(s: np.ndarray, geo: _Geo, start: np.ndarray, sigma0: float,
         gv = (Jw @ (S - m)[..., None])[..., 0]
         Hd = H + lam[:, None, None] * ((H + 1e-12) * _EYE5)       # H + lam diag(H): Levenberg-Marquardt
         try:
-            step = np.linalg.solve(Hd, gv[..., None])[..., 0]
+            step = _solve(Hd, gv[..., None])[..., 0]
         except np.linalg.LinAlgError:
             break
         cand = P + step
@@ -655,7 +685,10 @@ def _gaussian_fit(s: np.ndarray, geo: _Geo, start: np.ndarray, sigma0: float,
         if ((np.abs(step[:, :2]).max(axis=1) < 1e-3) | ~better).all() and (lam < 1e3).all():
             break
     x0, y0, sig, amp = P[:, 0], P[:, 1], P[:, 2], P[:, 3]
-    ok = (np.hypot(x0 - start[:, 0], y0 - start[:, 1]) < max(1.5, 0.5 * geo.radius)) & (amp > 0) & np.isfinite(x0)
+    # a width that ran into its bound (the patch's half side) is no marker's: the fit spread
+    # over something larger (an instrument's edge, a bone), whose "centre" means nothing
+    ok = (np.hypot(x0 - start[:, 0], y0 - start[:, 1]) < max(1.5, 0.5 * geo.radius)) & (amp > 0) & np.isfinite(x0) \
+        & (sig < geo.half)
     return np.column_stack([x0, y0]), amp, sig, ok
 
 

@@ -256,7 +256,10 @@ def track_view(frames: Iterable, seeds: pd.DataFrame | dict | None, diameter_px:
     S = settings.resolved(diameter_px)
     names, xy0 = _seed_arrays(seeds)
     markers = [_Marker(n, p.copy(), -1) for n, p in zip(names, xy0)]
-    rows: list[dict] = []
+    # the table is kept as one small array per frame and column (a dict per row would hold
+    # about a kilobyte per marker and frame: tens of MB over a long sequence)
+    cols: dict[str, list] = {c: [] for c in ("frame", "time_s", "x_px", "y_px", "found", "snr", "amplitude",
+                                             "area_px", "sigma_px", "pred", "gate_px", "status")}
     events: list[dict] = []
     fov_info = None
     fov = None
@@ -285,13 +288,13 @@ def track_view(frames: Iterable, seeds: pd.DataFrame | dict | None, diameter_px:
                            "other": live[j].name, "detail": "the two markers could be matched the other way round"})
             events.append({"view": view, "frame": f, "marker": live[j].name, "kind": "ambiguous",
                            "other": live[i].name, "detail": "the two markers could be matched the other way round"})
+        nm = len(live)
+        val = {c: np.full(nm, np.nan) for c in ("x_px", "y_px", "snr", "amplitude", "area_px", "sigma_px")}
+        found = np.zeros(nm, bool)
+        status = ["lost"] * nm
         for i, m in enumerate(live):
-            row = {"view": view, "frame": f, "time_s": t, "marker": m.name, "pred_x_px": pred[i, 0],
-                   "pred_y_px": pred[i, 1], "gate_px": gates[i]}
             j = match[i]
             if j < 0:
-                row.update({"x_px": np.nan, "y_px": np.nan, "found": False, "snr": np.nan, "amplitude": np.nan,
-                            "area_px": np.nan, "sigma_px": np.nan, "status": "lost"})
                 if m.lost_since is None:
                     m.lost_since = f
                     in_gate = np.flatnonzero(np.isfinite(d2[i])) if d2.size else []
@@ -305,9 +308,10 @@ def track_view(frames: Iterable, seeds: pd.DataFrame | dict | None, diameter_px:
                 amp = c["amplitude"]
                 med = m.amp_median
                 partial = bool(np.isfinite(med) and amp < settings.partial_fraction * med)
-                row.update({"x_px": float(c["x_px"]), "y_px": float(c["y_px"]), "found": True,
-                            "snr": float(c["snr"]), "amplitude": amp, "area_px": float(c["area_px"]),
-                            "sigma_px": float(c["sigma_px"]), "status": "partial" if partial else "found"})
+                for name, arr in val.items():
+                    arr[i] = c[name]
+                found[i] = True
+                status[i] = "partial" if partial else "found"
                 if m.lost_since is not None:
                     events.append({"view": view, "frame": f, "marker": m.name, "kind": "refound",
                                    "gap_frames": int(f - m.lost_since),
@@ -320,10 +324,33 @@ def track_view(frames: Iterable, seeds: pd.DataFrame | dict | None, diameter_px:
                                    "detail": "amplitude below its median: partly hidden, centre may be biased"})
                 m.update(f, np.array([c["x_px"], c["y_px"]]), amp if not partial else np.nan,
                          float(c["sigma_px"]) if not partial else np.nan)
-            rows.append(row)
-    table = pd.DataFrame(rows, columns=TRACK_COLUMNS)
-    table["found"] = table["found"].astype(bool)
-    return TrackResult(table, events, fov_info, {**settings.__dict__, **S})
+        for name, arr in val.items():
+            cols[name].append(arr)
+        cols["frame"].append(f)
+        cols["time_s"].append(t)
+        cols["found"].append(found)
+        cols["status"].extend(status)
+        cols["pred"].append(np.asarray(pred, float).reshape(nm, 2))
+        cols["gate_px"].append(np.asarray(gates, float))
+    return TrackResult(_seeded_table(view, names, cols), events, fov_info, {**settings.__dict__, **S})
+
+
+def _seeded_table(view: str, names: list[str], cols: dict) -> pd.DataFrame:
+    """The tidy table (:data:`TRACK_COLUMNS`, one row per frame and marker, markers in seed
+    order within each frame) from :func:`track_view`'s per-frame column arrays."""
+    nf, nm = len(cols["frame"]), len(names)
+    if nf == 0 or nm == 0:
+        table = pd.DataFrame([], columns=TRACK_COLUMNS)
+        table["found"] = table["found"].astype(bool)
+        return table
+    pred = np.concatenate(cols["pred"])
+    data = {"view": [view] * (nf * nm), "frame": np.repeat(np.asarray(cols["frame"], np.int64), nm),
+            "time_s": np.repeat(np.asarray(cols["time_s"], float), nm), "marker": names * nf,
+            "pred_x_px": pred[:, 0], "pred_y_px": pred[:, 1], "gate_px": np.concatenate(cols["gate_px"]),
+            "found": np.concatenate(cols["found"]), "status": cols["status"]}
+    for c in ("x_px", "y_px", "snr", "amplitude", "area_px", "sigma_px"):
+        data[c] = np.concatenate(cols[c])
+    return pd.DataFrame(data, columns=TRACK_COLUMNS)
 
 
 def _seed_arrays(seeds) -> tuple[list[str], np.ndarray]:

@@ -30,7 +30,9 @@ from __future__ import annotations
 from typing import Mapping, Sequence
 
 import numpy as np
-from scipy import stats
+
+# scipy.stats is imported where a p-value is computed (``from scipy import stats`` costs about
+# half a second of start-up; a command that only imports the loop framework does not pay it)
 
 #: Family-wise level of the noise verdict (Bonferroni over the tests run).
 ALPHA = 0.01
@@ -61,6 +63,7 @@ def _group_slices(groups: np.ndarray) -> list[np.ndarray]:
 
 def runs_test(e: np.ndarray, groups: np.ndarray) -> dict:
     """Wald-Wolfowitz runs of sign about each group's median, pooled over groups."""
+    from scipy import stats
     runs = expected = var = 0.0
     n_total = 0
     for idx in _group_slices(groups):
@@ -91,6 +94,7 @@ def _autocorr(x: np.ndarray, max_lag: int) -> np.ndarray:
 
 def autocorrelation_tests(e: np.ndarray, groups: np.ndarray, max_lag: int | None = None) -> tuple[dict, dict]:
     """Pooled lag-1 autocorrelation (normal test) and Ljung-Box over ``h`` lags (summed over groups)."""
+    from scipy import stats
     num = den = 0.0
     n_pairs = 0
     q = 0.0
@@ -117,6 +121,7 @@ def autocorrelation_tests(e: np.ndarray, groups: np.ndarray, max_lag: int | None
 
 
 def _anova(e: np.ndarray, labels: np.ndarray) -> dict:
+    from scipy import stats
     levels, inv = np.unique(labels, return_inverse=True)
     k = len(levels)
     n = len(e)
@@ -143,6 +148,7 @@ def _is_categorical(x: np.ndarray) -> bool:
 
 def covariate_tests(e: np.ndarray, x: np.ndarray, n_bins: int = 10) -> dict:
     """Dependence of the residual on one covariate: correlation + binned ANOVA, or ANOVA over levels."""
+    from scipy import stats
     x = np.asarray(x)
     if x.shape != e.shape:
         raise ValueError(f"covariate has shape {x.shape}, residual {e.shape}")

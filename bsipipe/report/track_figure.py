@@ -6,6 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+#: Tracks named in the trajectory figure's legend (the first ones, by first appearance).
+MAX_LEGEND = 20
+
 
 def _plt():
     import matplotlib
@@ -52,10 +55,18 @@ def trajectories_figure(table2d: pd.DataFrame, points3d: pd.DataFrame | None = N
         ax.set_title("3-D: x solid, y dashed, z dotted", fontsize=9)
     h, lab = axes[0][0].get_legend_handles_labels()
     if h:
+        # a legend names up to MAX_LEGEND tracks (an automatic run can have hundreds: the
+        # legend would cost more than the plot and say nothing); colours repeat every 10
+        more = len(lab) - MAX_LEGEND
+        h, lab = h[:MAX_LEGEND], lab[:MAX_LEGEND]
+        if more > 0:
+            lab[-1] = f"{lab[-1]} (+{more} more)"
         fig.legend(h, lab, loc="lower center", ncol=min(len(lab), 10), fontsize=8, frameon=False)
     if title:
         fig.suptitle(title, fontsize=10)
-    fig.tight_layout(rect=(0, 0.06, 1, 0.95))
+    # fixed margins instead of tight_layout (a full draw of every line just to measure the
+    # labels); the saved figure is cropped to its content anyway (bbox_inches="tight")
+    fig.subplots_adjust(left=0.06, right=0.98, bottom=0.2, top=0.88, wspace=0.3)
     return fig
 
 
@@ -67,26 +78,35 @@ def overlay_figure(images: dict[str, np.ndarray], table2d: pd.DataFrame, frame: 
     views = [v for v in images]
     fig, axes = plt.subplots(1, len(views), figsize=(6.0 * len(views), 6.0), squeeze=False)
     for ax, v in zip(axes[0], views):
-        img = np.asarray(images[v], float)
+        img = np.asarray(images[v])
         t = table2d[(table2d["view"] == v) & (table2d["frame"] == frame[v])]
         ok = t[t["found"].astype(bool)]
-        lo, hi = np.percentile(img, [1, 99.5])
-        ax.imshow(img, cmap="gray", vmin=lo, vmax=hi if hi > lo else lo + 1, interpolation="nearest")
+        lo, hi = (float(q) for q in np.percentile(img, [1, 99.5]))
         r = max(2.0 * diameter_px, 6.0)
+        pts = ok[["x_px", "y_px"]].to_numpy()
+        h, w = img.shape
+        # only the pixels the cropped panel shows are drawn (resampling a whole 1024 x 1024
+        # frame costs more than the rest of the figure); extent keeps pixel coordinates
+        x0, x1, y0, y1 = 0, w, 0, h
+        if len(pts):
+            m = 8 * r
+            x0 = int(np.clip(np.floor(pts[:, 0].min() - m), 0, w - 1))
+            x1 = int(np.clip(np.ceil(pts[:, 0].max() + m) + 1, x0 + 1, w))
+            y0 = int(np.clip(np.floor(pts[:, 1].min() - m), 0, h - 1))
+            y1 = int(np.clip(np.ceil(pts[:, 1].max() + m) + 1, y0 + 1, h))
+        ax.imshow(img[y0:y1, x0:x1], cmap="gray", vmin=lo, vmax=hi if hi > lo else lo + 1, interpolation="nearest",
+                  extent=(x0 - 0.5, x1 - 0.5, y1 - 0.5, y0 - 0.5))
         for rr in ok.itertuples():
             ax.add_patch(plt.Circle((rr.x_px, rr.y_px), r, fill=False, color="tab:orange", lw=0.8))
             ax.annotate(str(rr.marker), (rr.x_px + r, rr.y_px - r), color="tab:orange", fontsize=7)
         if seeds is not None and len(seeds):
             s = seeds[seeds["view"] == v]
             ax.plot(s["x_px"], s["y_px"], "+", color="tab:cyan", ms=6, mew=0.8, label="seeds")
-        pts = ok[["x_px", "y_px"]].to_numpy()
         if len(pts):
-            m = 8 * r
-            h, w = img.shape
             ax.set_xlim(max(pts[:, 0].min() - m, -0.5), min(pts[:, 0].max() + m, w - 0.5))
             ax.set_ylim(min(pts[:, 1].max() + m, h - 0.5), max(pts[:, 1].min() - m, -0.5))
         ax.set_title(f"{v}, frame {frame[v]}: {len(ok)} of {len(t)} markers found", fontsize=9)
         ax.set_xlabel("x (px)")
         ax.set_ylabel("y (px)")
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.08, right=0.98, bottom=0.08, top=0.94, wspace=0.25)
     return fig
