@@ -2,9 +2,17 @@
 
 Data (generated once into ``results/bench_cache/loop_logs``): two sheep-brain-like cylinders
 bonded to the platens (``boundary='no-slip'``: the machine-log twin runs its own axisymmetric
-felupe FE, 40 radial cells, finer than the fit's tables), 18 x 12 mm and 18 x 9 mm, one-term
+felupe FE at the exact alpha, on the fit tables' mesh), 18 x 12 mm and 18 x 9 mm, one-term
 Ogden mu 720 Pa, alpha -4.7, 4 mm/min to 30 % strain, 5,000 samples each, 1 mN load noise,
-written in the Bluehill 3 layout with the geometry in the metadata.
+written in the Bluehill 3 layout with the geometry in the metadata.  The twin shares the
+tables' mesh because a different one moves the force by 0.25-0.4 % where the free surface
+folds onto the platen (40 against 32 radial cells, near 20 % compression, up to 1.75 mN,
+RMS 0.6-0.7 mN): within the model's 1 % refinement bound but above the 1 mN load noise, so
+the loop finds structure it cannot attribute.  With 40-cell logs the fit of HEAD 4e59307
+added ``viscoelastic-relaxation`` (g 0.023, tau 9 s) beside ``no-slip-platens`` to absorb it;
+with the refined contact the residual sits at the 5 % noise threshold and mu is 1.2 % low.
+The logs are regenerated when the no-slip model (its table version) or the twin's mesh
+changes.
 
 - **bsipipe**: the command a user runs, ``bsipipe fit-ogden A.csv B.csv -o DIR`` with no
   ``--boundary`` (so ``no-slip-platens`` is a candidate beside the five other effects), in a
@@ -34,21 +42,19 @@ SPECIMENS = (("bonded_18x12", 12.0, 21), ("bonded_18x9", 9.0, 22))
 TRUTH = {"mu_pa": 720.0, "alpha": -4.7}
 LOG_KW = dict(n_points=N_POINTS, diameter_mm=18.0, max_strain=0.3, boundary="no-slip", noise_n=1e-3,
               mu_pa=TRUTH["mu_pa"], alpha=TRUTH["alpha"])
-CACHE_VERSION = 1
+CACHE_VERSION = 2
 
 
 def make_logs(say=print) -> list[Path]:
-    """The two Bluehill 3 logs (cached: the twin's FE takes tens of seconds per specimen).
-
-    Where the twin's own FE run fails, the logs are made from the package's FE tables
-    instead (the very model the fit uses: the loop then meets no discretisation error) and
-    the cache's ``stamp.json`` says so.
-    """
+    """The two Bluehill 3 logs (cached: the twin's FE takes tens of seconds per specimen)."""
+    from bsipipe.mechanics.noslip import DEFAULT_MESH, TABLE_VERSION
     from bsipipe.synth.machine_log import synth_compression_log, write_bluehill3
 
     folder = CACHE / "loop_logs"
     stamp = folder / "stamp.json"
-    want = json.loads(json.dumps({"version": CACHE_VERSION, "specimens": SPECIMENS, "kw": LOG_KW}))
+    kw = {**LOG_KW, "noslip_mesh_radial": DEFAULT_MESH.n_radial}
+    want = json.loads(json.dumps({"version": CACHE_VERSION, "specimens": SPECIMENS, "kw": kw,
+                                  "noslip_table_version": TABLE_VERSION}))
     paths = [folder / f"{name}.csv" for name, _, _ in SPECIMENS]
     if stamp.exists() and all(p.exists() for p in paths):
         have = json.loads(stamp.read_text())
@@ -58,11 +64,7 @@ def make_logs(say=print) -> list[Path]:
     models = []
     for (name, h, seed), p in zip(SPECIMENS, paths):
         say(f"loop: generating {p.name} (the twin's FE, once)")
-        try:
-            frame, truth = synth_compression_log(height_mm=h, seed=seed, **LOG_KW)
-        except (RuntimeError, ValueError, ArithmeticError) as e:
-            say(f"loop: the twin's FE failed ({e}); {p.name} made from the package's no-slip tables instead")
-            frame, truth = synth_compression_log(height_mm=h, seed=seed, noslip_mesh_radial=None, **LOG_KW)
+        frame, truth = synth_compression_log(height_mm=h, seed=seed, **kw)
         models.append(truth["noslip_model"])
         write_bluehill3(frame, p, label=name, geometry={"diameter_mm": 18.0, "height_mm": h})
     stamp.write_text(json.dumps({**want, "noslip_model": models}))
@@ -70,7 +72,7 @@ def make_logs(say=print) -> list[Path]:
 
 
 def logs_noslip_model() -> list | None:
-    """How the cached logs' bonded-platen force was made (``FE, 40 radial cells`` or ``tables``)."""
+    """How the cached logs' bonded-platen force was made (e.g. ``FE, 32 radial cells``)."""
     stamp = CACHE / "loop_logs" / "stamp.json"
     return json.loads(stamp.read_text()).get("noslip_model") if stamp.exists() else None
 

@@ -87,8 +87,10 @@ def _read_logs(paths: Sequence[str], cfg: FitConfig, explicit: set):
             raise InputError(f"contact detection: {e}", path=p) from None
         speed = _loading_speed(ml.time_s, disp, contact.index)
         name = Path(p).stem
+        # The detector's standard deviation and noise make the contact a refined nuisance
+        # parameter of every fit (bsipipe.mechanics.fit, "Contact").
         logs.append(LogData(name, ml.time_s, disp, force, geo["diameter_mm"], geo["height_mm"],
-                            contact.displacement_mm, speed))
+                            contact.displacement_mm, speed, contact.displacement_sd_mm, contact.force_noise_n))
         inputs.append({"path": str(p), "layout": ml.layout, "speed_mm_s": speed,
                        "contact_mm": contact.displacement_mm, "n_points": int(len(ml)),
                        "diameter_mm": geo["diameter_mm"], "height_mm": geo["height_mm"],
@@ -224,6 +226,27 @@ def _fit_quality(final) -> list[dict]:
     return fit_warnings(final.param_names, final.cov, final.ci95, zero_checked=zero, logger=log)
 
 
+def _refined_contact(final, i: int, n_logs: int, detected_mm: float) -> dict:
+    """Log ``i``'s contact after the fit: the detected one plus the fitted shift, its 95 % interval,
+    how it was refined (``"prior"``: within the detector's uncertainty; ``"free"``: the
+    ``contact-offset`` effect) and the fitted toe half-width where there is one."""
+    sfx = f"[{i}]" if n_logs > 1 else ""
+    name = f"contact_offset_mm{sfx}"
+    if name not in final.values:
+        return {"contact_refined_mm": detected_mm, "contact_refinement": "held at the detected contact"}
+    shift = float(final.values[name])
+    lo, hi = final.ci95[name]
+    out = {"contact_refined_mm": detected_mm + shift, "contact_refined_ci95_mm": [detected_mm + lo, detected_mm + hi],
+           "contact_shift_mm": shift,
+           "contact_refinement": "free, with an uneven-top toe (contact-offset)" if final.spec.contact_offset
+           else "within the detector's standard deviation (Gaussian prior)"}
+    toe = f"contact_toe_mm{sfx}"
+    if toe in final.values:
+        out["contact_toe_mm"] = float(final.values[toe])
+        out["contact_toe_ci95_mm"] = list(final.ci95[toe])
+    return out
+
+
 def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_stretch: bool = False,
         modes: Sequence[str] = (), diameter_mm: float | None = None, height_mm: float | None = None,
         model: str | None = None, prony: int | None = None, boundary: str | None = None,
@@ -293,8 +316,9 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
     final = final_boot
 
     if kind == "logs":
-        for info, used in zip(input_info, final.used):
+        for i, (info, used) in enumerate(zip(input_info, final.used)):
             info["n_fitted"] = int(used.sum())
+            info.update(_refined_contact(final, i, len(input_info), info["contact_mm"]))
     spec = final.spec
     result = {
         "model": spec.law,
@@ -305,9 +329,13 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
         "loop": loop_dict,
         "spec": {"law": spec.law, "prony": spec.prony, "boundary": spec.boundary,
                  "contact_offset": spec.contact_offset, "baseline_drift": spec.baseline_drift,
-                 "compliance": spec.compliance, "description": spec.describe()},
+                 "compliance": spec.compliance, "refine_contact": spec.refine_contact,
+                 "description": spec.describe()},
         "moduli": "instantaneous (G(0) = 1; long-term = mu * (1 - sum g))" if spec.prony else "elastic",
-        "ci95_method": "Jacobian at the optimum, t quantile, covariance scaled by the residual variance",
+        "ci95_method": ("Jacobian at the optimum, t quantile, covariance scaled by the residual variance"
+                        + ("; each detected contact refined within the detector's standard deviation "
+                           "(a Gaussian prior), so its uncertainty is in every interval"
+                           if kind == "logs" else "")),
         "ci95_bootstrap": final.ci95_bootstrap,
         "bootstrap": final.bootstrap,
         "n_obs": final.n_obs, "n_params": final.n_params, "aic": final.aic, "bic": final.bic,

@@ -7,7 +7,8 @@ force model itself is in :mod:`bsipipe.mechanics.fit`); the names are the contra
 ``viscoelastic-relaxation``  one more quasi-linear viscoelastic Prony term (up to 3; relaxation
                              times bounded by the logs' sampling and span, 0.1-100 s for the
                              seeds' tests), one set over every log and segment
-``contact-offset``           the true contact differs from the detected one (per log)
+``contact-offset``           the true contact differs from the detected one beyond the detector's
+                             uncertainty: a free contact shift and an uneven-top toe (per log)
 ``load-baseline-drift``      load-cell offset and linear drift in time (per log)
 ``machine-compliance``       the crosshead extension includes frame deflection ``C F`` (shared)
 ``model-order``              one more Ogden term (ogden -> ogden2 -> ogden3)
@@ -33,7 +34,8 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from ..loop import Effect, LoopReport, SelectionRule, run_loop
-from .fit import (ForceModelSpec, LogData, fit_logs, fit_tables, parameter_names, predict_force)
+from .fit import (ForceModelSpec, LogData, contact_compression, fit_logs, fit_tables, parameter_names,
+                  predict_force)
 
 log = logging.getLogger(__name__)
 
@@ -65,11 +67,15 @@ VISCOELASTIC = Effect(
 
 CONTACT_OFFSET = Effect(
     "contact-offset",
-    "The platen meets the specimen earlier or later than the detected contact (an uneven top "
-    "surface, a soft toe region): every stretch is off by a constant displacement.",
+    "The true contact differs from the detected one by more than the detector's uncertainty: an "
+    "uneven top surface the platen meets at its highest point first and flattens over 2 c of travel "
+    "(contact_compression: delta = (x + c)^2 / 4c for |x| < c), so the force rises early and slowly. "
+    "Frees each log's contact shift (the declared model holds it within the detector's standard "
+    "deviation) and fits the toe half-width c.",
     "Residual concentrated just after contact and changing sign there (correlates with nominal "
-    "strain at small strain), smaller at large strain.",
-    lambda s: None if s.contact_offset else replace(s, contact_offset=True), ("contact_offset_mm",))
+    "strain at small strain), smaller at large strain; a contact shift many detector standard "
+    "deviations from the detected contact.",
+    lambda s: None if s.contact_offset else replace(s, contact_offset=True), ("contact_offset_mm", "contact_toe_mm"))
 
 BASELINE_DRIFT = Effect(
     "load-baseline-drift",
@@ -113,13 +119,31 @@ def mechanics_effects(*, boundary_declared: bool, width: "WidthSeries | None" = 
     """fit-ogden's candidate effects for machine logs, in the order they are tried.
 
     ``no-slip-platens`` is a candidate only when the command line did not declare the
-    boundary; with a width series (of ``logs[width.log_index]``) its evidence includes
-    :func:`width_evidence`.
+    boundary and the data can show it: a width series (of ``logs[width.log_index]``, whose
+    evidence :func:`width_evidence` then carries), or specimens whose height/diameter
+    differ by at least :data:`NO_SLIP_MIN_ASPECT_SPREAD` (the barrelling factor then differs
+    between them).  In the force of one shape alone a homogeneous law with a larger mu
+    mimics bonded platens, so the candidate would only be fitted, never decided (and a
+    new shape costs minutes of FE to tabulate): declare ``--boundary`` instead.
     """
     effects = [VISCOELASTIC, CONTACT_OFFSET, BASELINE_DRIFT, COMPLIANCE, MODEL_ORDER]
     if not boundary_declared:
-        effects.append(no_slip_effect(width_evidence(width, logs) if width is not None else None))
+        aspects = [lg.aspect for lg in logs]
+        spread = max(aspects) / min(aspects) if aspects else 1.0
+        if width is not None or spread >= NO_SLIP_MIN_ASPECT_SPREAD:
+            effects.append(no_slip_effect(width_evidence(width, logs) if width is not None else None))
+        else:
+            log.info("loop: no-slip-platens is not tried: no width series and the specimens' height/diameter "
+                     "differ by %.1f %% (< %.0f %%); declare --boundary no-slip if the platens held the specimen",
+                     100 * (spread - 1), 100 * (NO_SLIP_MIN_ASPECT_SPREAD - 1))
     return effects
+
+
+#: Least ratio of the largest to the smallest height/diameter over the logs for which the
+#: loop tries ``no-slip-platens`` from the force alone.  The bonded/homogeneous force ratio
+#: at 20 % compression (alpha -4.7) is 1.68, 1.40 and 1.22 at H/D 0.5, 2/3 and 1 (the shipped
+#: tables), so shapes 1.25x apart differ by more than 10 % in it.
+NO_SLIP_MIN_ASPECT_SPREAD = 1.25
 
 
 # --- outside evidence: the lateral width series ------------------------------------------------
@@ -151,9 +175,10 @@ def _stretch_at(log_: LogData, values: Mapping, spec: ForceModelSpec, time_s: np
     """Specimen stretch at ``time_s`` under a fitted model (its contact offset and compliance)."""
     d = np.interp(time_s, log_.time_s, log_.displacement_mm)
     f = np.interp(time_s, log_.time_s, log_.force_n)
-    off = float(values.get("contact_offset_mm", 0.0)) if spec.contact_offset else 0.0
+    off = float(values.get("contact_offset_mm", 0.0))       # present where the fit refined the contact
+    toe = float(values.get("contact_toe_mm", 0.0)) if spec.contact_offset else 0.0
     c = float(values.get("compliance_mm_per_n", 0.0)) if spec.compliance else 0.0
-    delta = np.maximum(d - log_.contact_mm - off - c * f, 0.0)
+    delta = contact_compression(d - log_.contact_mm - off - c * f, toe)
     return np.clip(1.0 - delta / log_.height_mm, 0.05, 1.0)
 
 
@@ -259,7 +284,7 @@ class LogFitter:
 
     def fit(self, spec: ForceModelSpec):
         if spec not in self.fits:
-            start = self._start(spec, self.fits, set(parameter_names(spec, len(self.logs))))
+            start = self._start(spec, self.fits, set(parameter_names(spec, self.logs)))
             self.fits[spec] = fit_logs(self.logs, spec, max_strain=self.max_strain, start=start)
         return self.fits[spec]
 

@@ -7,24 +7,62 @@ sample), detected contact :math:`d_c`, height :math:`H` and diameter :math:`D`:
 
 .. math::
 
-    \delta &= d - d_c - \Delta_c - C F_t                    &\text{(tissue compression, mm)} \\
-    \lambda &= 1 - \delta / H \ \ (\delta > 0), \quad 1 \text{ otherwise} \\
+    x &= d - d_c - \Delta_c - C F_t                         &\text{(platen travel past contact, mm)} \\
+    \delta &= \delta(x; c)                                  &\text{(tissue compression, mm)} \\
+    \lambda &= 1 - \delta / H \\
     F_e &= -P(\lambda)\, \pi D^2 / 4                         &\text{(elastic force, N; mm}^2 \to \text{m}^2) \\
     F_t &= \mathrm{QLV}[F_e](t)                             &\text{(Prony terms, when any)} \\
     F &= F_t + b_0 + b_1 (t - t_0)
 
 :math:`P` is the law's homogeneous uniaxial nominal stress (Pa, negative in compression), or
 the bonded-platen FE force per area of :mod:`bsipipe.mechanics.noslip` for
-``boundary='no-slip'`` (one-term Ogden only).  The effects of :class:`ForceModelSpec` switch
-on the contact offset :math:`\Delta_c` (``contact_offset_mm``, per log), the load-cell
-baseline and drift :math:`b_0, b_1` (``baseline_n``, ``drift_n_per_s``, per log) and the
-machine compliance :math:`C` (``compliance_mm_per_n``, shared: one frame).  Compliance makes
-the model implicit in :math:`F_t`; it is solved by Newton's method per sample (exact without
-Prony terms; with them the instantaneous derivative, :math:`G(0) = 1`, preconditions a
-fixed-point iteration over the whole history).
+``boundary='no-slip'`` (one-term Ogden only).  :math:`\delta(x; c)` is
+:func:`contact_compression`: an uneven top face met first at :math:`x = -c` and flat from
+:math:`x = c`.  The effects of :class:`ForceModelSpec` switch on the free contact shift and
+the toe (``contact_offset``: :math:`\Delta_c` = ``contact_offset_mm`` and :math:`c` =
+``contact_toe_mm``, per log), the load-cell baseline and drift :math:`b_0, b_1`
+(``baseline_n``, ``drift_n_per_s``, per log) and the machine compliance :math:`C`
+(``compliance_mm_per_n``, shared: one frame).  Compliance makes the model implicit in
+:math:`F_t`; it is solved by Newton's method per sample (exact without Prony terms; with them
+the instantaneous derivative, :math:`G(0) = 1`, preconditions a fixed-point iteration over
+the whole history).
+
+Contact
+-------
+A detected contact is an estimate: :func:`bsipipe.mechanics.contact.detect_contact` gives
+its standard deviation :math:`s_c` (``LogData.contact_sd_mm``), about 7 um on the
+sheep-brain log at 10 Hz, where 7 um moves mu by 0.7 %.  Holding the contact there would put
+that error into mu without its interval knowing.  So every fit of a log with a detected
+contact (``refine_contact``, the default) refines the shift :math:`\Delta_c` as a nuisance
+parameter under the detector's Gaussian prior :math:`\Delta_c \sim N(0, s_c^2)`: one
+pseudo-observation :math:`w_i \sigma_i \Delta_c / s_c` joins the residuals, with
+:math:`\sigma_i` the load noise the detector measured (``LogData.force_noise_n``, N) and
+:math:`w_i` the log's weight, so that against the data's residuals (noise :math:`w_i
+\sigma_i`) it weighs as :math:`(\Delta_c / s_c)^2`.  The Jacobian intervals below then carry
+the contact's uncertainty.  The force data pin the contact about three times better than the
+detector (the Ogden shape is known, the detector's polynomial is not), so the refined contact
+is mostly the data's and the prior only keeps it near the detector where the data do not
+decide (it is a statistic of the same samples, so it is not independent information; its
+weight is a tenth of the data's on the sheep-brain log, and the 95 % intervals cover the
+truth in 46/50 seeded repeats, ``tests/test_fit.py``).
+
+The prior's tails are heavier than Gaussian: the pseudo-observation is
+:func:`contact_prior_residual`, :math:`\rho(z) = 2(\sqrt{1 + z^2} - 1)` of
+:math:`z = \Delta_c / s_c` (a density :math:`\propto e^{-\rho/2}`), :math:`z^2` within about one
+standard deviation, :math:`2|z|` beyond.  The detector's standard deviation cannot see a bias
+its hinge polynomial shares over every window, as at a viscoelastic onset (the force first
+rises with the instantaneous modulus and relaxes within :math:`v\tau` of contact: on the
+sample study's 1 mm/min log the detector is 21 um, 4.3 sd, early).  A Gaussian prior would
+then hold the contact partway between the detector and the data (mu 1 % low there); with
+these tails the data win a conflict of several standard deviations, and the interval widens
+as the prior's curvature falls, while a calibrated detector (:math:`|z| \lesssim 1`) keeps
+the Gaussian prior's weight.  ``contact_offset`` (the loop's
+``contact-offset`` effect) frees the shift and adds the toe: the true contact is not where the
+detector and a flat top say.  A log whose contact is given exactly (no ``contact_sd_mm``) is
+held there.
 
 The data fitted are every sample from the first (the pre-contact part pins the baseline and
-the offset) up to ``max_strain`` of nominal strain past the *detected* contact; the model is
+the contact) up to ``max_strain`` of nominal strain past the *detected* contact; the model is
 always evaluated over the whole history (the hereditary integral needs it).
 
 Objective and weights
@@ -60,8 +98,16 @@ best grid points of each exponent sign pattern start ``scipy.optimize.least_squa
 :math:`0 \le g_i \le 0.98`, relaxation times fitted as :math:`\log_{10}\tau`); every start
 runs 12 iterations, the best two run to convergence, the lowest cost wins.  Ogden terms are
 reported in decreasing order of :math:`\mu_i`.  The 95 %
-intervals come from the Jacobian at the optimum (central differences),
-:math:`\mathrm{cov} = s^2 (J^T J)^{-1}`, :math:`s^2 = \mathrm{SSE}/(n - p)`, half-width
+intervals come from the Jacobian at the optimum (central differences, the contact priors'
+rows included), :math:`\mathrm{cov} = s^2 (J^T J)^{-1}`, :math:`s^2 = \mathrm{SSE}/(n - p)`
+(the priors' rows and the shifts they hold leave :math:`n - p` of the data as it is);
+with several logs the weights balance the logs, they are not the noise (every sample has
+the load cell's), so the covariance is the weighted estimator's sandwich,
+:math:`s^2 (J^T J)^{-1} J^T W J (J^T J)^{-1}` (:math:`J` the weighted residual's Jacobian,
+:math:`W` the rows' squared weights, :math:`s^2` from the unweighted residuals): a short log
+weighted up does not make its noise smaller (on the sample study's 125-sample 100 mm/min
+log, weight squared 7.5, the plain form made the contact's and mu's intervals 2.5 times too
+narrow), and a prior row counts with its log's weight.  Half-width
 :math:`t_{0.975, n-p} \sqrt{\mathrm{cov}_{jj}}` (relaxation times: in :math:`\log_{10}`, then
 mapped back).  ``bootstrap=B`` checks them with a seeded residual bootstrap (residuals
 resampled within each log, refitted from the optimum, 2.5/97.5 percentiles).
@@ -69,7 +115,8 @@ resampled within each log, refitted from the optimum, 2.5/97.5 percentiles).
 Metrics: ``rmse_n`` (``rmse_pa`` for tables, unweighted over the fitted samples), ``nrmse``
 (rmse over the data's range), ``max_rel_err`` (max :math:`|F_{model} - F| / |F|` over samples
 with :math:`|F|` above 10 % of the maximum), ``median_rel_err``, and AIC/BIC from the
-weighted SSE: :math:`n \ln(\mathrm{SSE}/n) + 2p` and :math:`n \ln(\mathrm{SSE}/n) + p \ln n`.
+weighted SSE (with the contact priors' terms, a penalised likelihood; :math:`n` the data's
+samples): :math:`n \ln(\mathrm{SSE}/n) + 2p` and :math:`n \ln(\mathrm{SSE}/n) + p \ln n`.
 """
 
 from __future__ import annotations
@@ -97,6 +144,20 @@ _G_MAX = 0.98
 #: f of the soft-L1 loss of stress-table fits (module docstring).
 TABLE_LOSS_SCALE = 0.03
 _MIN_STRETCH = 0.05          # the model clips the stretch here (a 95 % compression is no log's range)
+_TOE_START_MM = 0.05         # start of the uneven-top half-width c (contact_offset)
+
+
+def contact_prior_residual(z) -> np.ndarray:
+    r"""The contact prior's residual at ``z`` = shift / detector sd: soft-L1 with ``f = 1``.
+
+    Its square :math:`2(\sqrt{1 + z^2} - 1)` is :math:`z^2` (a Gaussian prior) within about
+    one standard deviation and :math:`2|z|` (Laplace tails) far out (module docstring,
+    "Contact").
+
+    >>> [round(float(r), 4) for r in contact_prior_residual(np.array([0.1, 4.0]))]
+    [0.0999, 2.4992]
+    """
+    return soft_l1_residual(z, 1.0)
 
 
 def soft_l1_residual(z, f: float) -> np.ndarray:
@@ -123,6 +184,13 @@ class LogData:
     ``displacement_mm`` and ``force_n`` are positive in compression, displacement from the
     first sample (:meth:`bsipipe.io.machine_log.MachineLog.compression`); ``contact_mm`` is
     the detected contact displacement; ``speed_mm_s`` the loading speed (reported only).
+
+    ``contact_sd_mm`` and ``force_noise_n`` are the contact detector's standard deviation of
+    ``contact_mm`` and the load noise it measured
+    (:class:`bsipipe.mechanics.contact.Contact`'s ``displacement_sd_mm`` and
+    ``force_noise_n``): with them the fit refines the contact within that uncertainty (the
+    module docstring's contact prior).  Without them (``None``) the contact is taken as known
+    exactly and held, unless the spec frees it (``contact_offset``).
     """
 
     name: str
@@ -133,6 +201,8 @@ class LogData:
     height_mm: float
     contact_mm: float
     speed_mm_s: float | None = None
+    contact_sd_mm: float | None = None
+    force_noise_n: float | None = None
 
     def __post_init__(self):
         for k in ("time_s", "displacement_mm", "force_n"):
@@ -142,6 +212,16 @@ class LogData:
             raise ValueError(f"log {self.name}: time, displacement and force must be 1-D of one length")
         if not (self.diameter_mm > 0 and self.height_mm > 0):
             raise ValueError(f"log {self.name}: diameter and height must be positive")
+        if (self.contact_sd_mm is None) != (self.force_noise_n is None):
+            raise ValueError(f"log {self.name}: give the contact's standard deviation and the load noise together")
+        if self.contact_sd_mm is not None and not (np.isfinite(self.contact_sd_mm) and self.contact_sd_mm > 0
+                                                   and np.isfinite(self.force_noise_n) and self.force_noise_n > 0):
+            raise ValueError(f"log {self.name}: contact_sd_mm and force_noise_n must be positive and finite")
+
+    @property
+    def contact_prior(self) -> bool:
+        """Whether the contact is a detector's estimate with a standard deviation."""
+        return self.contact_sd_mm is not None
 
     @property
     def area_m2(self) -> float:
@@ -161,6 +241,10 @@ class LogData:
 class ForceModelSpec:
     """The force model: a law, its Prony order, the platen boundary and the effects switched on.
 
+    ``refine_contact`` (default) refines each detected contact within the detector's standard
+    deviation (module docstring, "Contact"); ``False`` holds it at the detected point.
+    ``contact_offset`` frees it and fits an uneven-top toe (the ``contact-offset`` effect).
+
     Frozen and hashable: the loop (``bsipipe.loop``) augments a spec with
     :func:`dataclasses.replace` and caches fits by spec.
     """
@@ -171,6 +255,7 @@ class ForceModelSpec:
     contact_offset: bool = False
     baseline_drift: bool = False
     compliance: bool = False
+    refine_contact: bool = True
 
     def __post_init__(self):
         get_law(self.law)
@@ -258,16 +343,32 @@ def prony_names(n: int) -> list[str]:
     return [x for i in range(1, n + 1) for x in (f"g{i}", f"tau{i}_s")]
 
 
-def parameter_names(spec: ForceModelSpec, n_logs: int = 1) -> list[str]:
-    """Flat names of every fitted parameter of ``spec`` over ``n_logs`` logs, in fit order.
+def _shifted(spec: ForceModelSpec, log_: "LogData | None") -> bool:
+    """Is the contact of ``log_`` a fitted parameter under ``spec`` (free, or within its prior)?"""
+    return spec.contact_offset or (spec.refine_contact and log_ is not None and log_.contact_prior)
 
-    >>> parameter_names(ForceModelSpec(prony=1, contact_offset=True), 2)
-    ['mu_pa', 'alpha', 'g1', 'tau1_s', 'contact_offset_mm[0]', 'contact_offset_mm[1]']
+
+def _has_prior(spec: ForceModelSpec, log_: "LogData | None") -> bool:
+    """Is the contact shift of ``log_`` held by the detector's Gaussian prior?"""
+    return not spec.contact_offset and spec.refine_contact and log_ is not None and log_.contact_prior
+
+
+def parameter_names(spec: ForceModelSpec, logs: "int | Sequence[LogData]" = 1) -> list[str]:
+    """Flat names of every fitted parameter of ``spec`` over ``logs``, in fit order.
+
+    ``logs`` is the logs themselves or their number; a number stands for logs whose contact
+    is known exactly (no detector uncertainty, so no contact shift unless ``contact_offset``).
+
+    >>> parameter_names(ForceModelSpec(prony=1, contact_offset=True), 2)[2:]
+    ['g1', 'tau1_s', 'contact_offset_mm[0]', 'contact_offset_mm[1]', 'contact_toe_mm[0]', 'contact_toe_mm[1]']
     """
+    seq = [None] * logs if isinstance(logs, (int, np.integer)) else list(logs)
+    n_logs = len(seq)
     names = list(get_law(spec.law).param_names) + prony_names(spec.prony)
     sfx = (lambda i: f"[{i}]") if n_logs > 1 else (lambda i: "")
+    names += [f"contact_offset_mm{sfx(i)}" for i, lg in enumerate(seq) if _shifted(spec, lg)]
     if spec.contact_offset:
-        names += [f"contact_offset_mm{sfx(i)}" for i in range(n_logs)]
+        names += [f"contact_toe_mm{sfx(i)}" for i in range(n_logs)]
     if spec.baseline_drift:
         names += [x for i in range(n_logs) for x in (f"baseline_n{sfx(i)}", f"drift_n_per_s{sfx(i)}")]
     if spec.compliance:
@@ -318,26 +419,53 @@ def _stress_function(spec: ForceModelSpec, law: Law, tissue: np.ndarray, aspect:
     return lambda lam: ogden_nominal_stress(lam, mus, alphas, "uniaxial")
 
 
-def _elastic_force(stress, delta_mm, height_mm, area_m2, with_derivative=False):
-    """Elastic force (N, + in compression) and optionally dF/d(delta) (N/mm)."""
-    lam = np.clip(1.0 - np.maximum(delta_mm, 0.0) / height_mm, _MIN_STRETCH, 1.0)
+def contact_compression(x_mm, toe_mm: float = 0.0, with_derivative: bool = False):
+    r"""Bulk compression (mm) of a specimen with an uneven top, at platen travel ``x`` past contact.
+
+    .. math::
+
+        \delta(x; c) = \begin{cases} 0 & x \le -c \\ (x + c)^2 / (4c) & |x| < c \\ x & x \ge c \end{cases}
+
+    The platen first touches the highest point at ``x = -c`` and the whole face at ``x = c``;
+    beyond, the specimen behaves as a flat one touched at ``x = 0`` (the contact the fit
+    reports).  ``c = 0`` is a flat top, :math:`\max(x, 0)`.  With ``with_derivative`` also
+    :math:`d\delta / dx`.
+
+    >>> [round(float(v), 6) for v in contact_compression(np.array([-0.3, 0.0, 0.1, 0.3]), 0.2)]
+    [0.0, 0.05, 0.1125, 0.3]
+    """
+    x = np.asarray(x_mm, dtype=float)
+    c = float(toe_mm)
+    if c <= 0.0:
+        delta, slope = np.maximum(x, 0.0), (x > 0).astype(float)
+    else:
+        u = np.clip(x + c, 0.0, 2.0 * c)
+        delta = np.where(x >= c, x, u * u / (4.0 * c))
+        slope = u / (2.0 * c)
+    return (delta, slope) if with_derivative else delta
+
+
+def _elastic_force(stress, x_mm, height_mm, area_m2, toe_mm=0.0, with_derivative=False):
+    """Elastic force (N, + in compression) at platen travel ``x`` past contact, optionally dF/dx (N/mm)."""
+    delta, slope = contact_compression(x_mm, toe_mm, with_derivative=True)
+    lam = np.clip(1.0 - delta / height_mm, _MIN_STRETCH, 1.0)
     f = -stress(lam) * area_m2
     if not with_derivative:
         return f, None
     h = 1e-6
     dp = (stress(np.minimum(lam + h, 1.0 + h)) - stress(lam - h)) / (2 * h)   # dP/dlambda
-    return f, dp * area_m2 / height_mm
+    return f, dp * area_m2 / height_mm * slope
 
 
-def _tissue_force(time_s, x_mm, height_mm, area_m2, stress, g, tau, compliance, max_iter=60):
-    """QLV[F_e(x - C F)] solved for F (see the module docstring)."""
+def _tissue_force(time_s, x_mm, height_mm, area_m2, stress, g, tau, compliance, toe_mm=0.0, max_iter=60):
+    """QLV[F_e(delta(x - C F))] solved for F (see the module docstring)."""
     if compliance <= 0.0:
-        fe, _ = _elastic_force(stress, x_mm, height_mm, area_m2)
+        fe, _ = _elastic_force(stress, x_mm, height_mm, area_m2, toe_mm)
         return qlv_response(time_s, fe, g, tau) if len(g) else fe
     f = np.zeros_like(x_mm)
     scale = None
     for _ in range(max_iter):
-        fe, dfe = _elastic_force(stress, x_mm - compliance * f, height_mm, area_m2, with_derivative=True)
+        fe, dfe = _elastic_force(stress, x_mm - compliance * f, height_mm, area_m2, toe_mm, with_derivative=True)
         target = qlv_response(time_s, fe, g, tau) if len(g) else fe
         r = f - target
         f = f - r / (1.0 + compliance * np.maximum(dfe, 0.0))
@@ -347,10 +475,10 @@ def _tissue_force(time_s, x_mm, height_mm, area_m2, stress, g, tau, compliance, 
     return f
 
 
-def _log_force(log_: LogData, spec: ForceModelSpec, law: Law, tissue, g, tau, offset, compliance, b0, b1):
+def _log_force(log_: LogData, spec: ForceModelSpec, law: Law, tissue, g, tau, offset, compliance, b0, b1, toe=0.0):
     stress = _stress_function(spec, law, tissue, log_.aspect)
     x = log_.displacement_mm - log_.contact_mm - offset
-    f = _tissue_force(log_.time_s, x, log_.height_mm, log_.area_m2, stress, g, tau, compliance)
+    f = _tissue_force(log_.time_s, x, log_.height_mm, log_.area_m2, stress, g, tau, compliance, toe)
     if b0 or b1:
         f = f + b0 + b1 * (log_.time_s - log_.time_s[0])
     return f
@@ -361,20 +489,22 @@ def predict_force(log: LogData, spec: ForceModelSpec, params: Mapping) -> np.nda
 
     ``params`` holds the law's parameters, the Prony terms (``"prony"`` list or flat
     ``g1``/``tau1_s``) and the effects' parameters under their plain names
-    (``contact_offset_mm``, ``baseline_n``, ``drift_n_per_s``, ``compliance_mm_per_n``;
-    :meth:`FitResult.log_params` gives them for one log of a joint fit).  Effects the spec
-    does not switch on are ignored.
+    (``contact_offset_mm``, ``contact_toe_mm``, ``baseline_n``, ``drift_n_per_s``,
+    ``compliance_mm_per_n``; :meth:`FitResult.log_params` gives them for one log of a joint
+    fit).  Effects the spec does not switch on are ignored; the contact shift applies where
+    the fit refines it (``contact_offset``, or a detected contact with ``refine_contact``).
     """
     p = _flat_prony(params)
     law = get_law(spec.law)
     tissue = np.array([p[k] for k in law.param_names], dtype=float)
     g = np.array([p[f"g{i}"] for i in range(1, spec.prony + 1)], dtype=float)
     tau = np.array([p[f"tau{i}_s"] for i in range(1, spec.prony + 1)], dtype=float)
-    offset = float(p.get("contact_offset_mm", 0.0)) if spec.contact_offset else 0.0
+    offset = float(p.get("contact_offset_mm", 0.0)) if _shifted(spec, log) else 0.0
+    toe = float(p.get("contact_toe_mm", 0.0)) if spec.contact_offset else 0.0
     c = float(p.get("compliance_mm_per_n", 0.0)) if spec.compliance else 0.0
     b0 = float(p.get("baseline_n", 0.0)) if spec.baseline_drift else 0.0
     b1 = float(p.get("drift_n_per_s", 0.0)) if spec.baseline_drift else 0.0
-    return _log_force(log, spec, law, tissue, g, tau, offset, c, b0, b1)
+    return _log_force(log, spec, law, tissue, g, tau, offset, c, b0, b1, toe)
 
 
 # --- problems: a residual function over an internal parameter vector ---------------------
@@ -492,10 +622,24 @@ class _LogProblem(_Problem):
                      _Par(f"tau{i}_s", np.log10(self.tau_bounds[0]), np.log10(self.tau_bounds[1]), 0.5, log10=True)]
         n = len(logs)
         sfx = (lambda i: f"[{i}]") if n > 1 else (lambda i: "")
+        # The contact shift: free under contact_offset, else held by the detector's prior.
+        # Its pseudo-observation (module docstring) is w_i sigma_i r(shift / sd_i), so it
+        # weighs against log i's data residuals (weight w_i, noise sigma_i N) as a prior of
+        # scale sd_i mm.
+        self.prior_rows = []                      # (parameter index, w_i sigma_i (N), sd_i (mm))
+        self.prior_log = []                       # the log of each prior row
+        for i, lg in enumerate(logs):
+            if _shifted(spec, lg):
+                if _has_prior(spec, lg):
+                    self.prior_log.append(i)
+                    self.prior_rows.append((len(pars), float(self.weights[i] * lg.force_noise_n),
+                                            float(lg.contact_sd_mm)))
+                lim = 0.2 * lg.height_mm
+                scale = min(0.02, 2.0 * lg.contact_sd_mm) if _has_prior(spec, lg) else 0.02
+                pars.append(_Par(f"contact_offset_mm{sfx(i)}", -lim, lim, scale))
         if spec.contact_offset:
             for i, lg in enumerate(logs):
-                lim = 0.2 * lg.height_mm
-                pars.append(_Par(f"contact_offset_mm{sfx(i)}", -lim, lim, 0.02))
+                pars.append(_Par(f"contact_toe_mm{sfx(i)}", 0.0, 0.1 * lg.height_mm, 0.02))
         if spec.baseline_drift:
             for i, (lg, d) in enumerate(zip(logs, self.data)):
                 span_i = max(float(lg.time_s[-1] - lg.time_s[0]), 1e-9)
@@ -507,8 +651,8 @@ class _LogProblem(_Problem):
             pars.append(_Par("compliance_mm_per_n", 0.0, 0.5 * hmin / fmax, 0.01 * hmin / fmax))
         self.pars = pars
         self.names = [p.name for p in pars]
-        if self.names != parameter_names(spec, n):       # the layout and the public names must agree
-            raise RuntimeError(f"parameter layout {self.names} differs from {parameter_names(spec, n)}")
+        if self.names != parameter_names(spec, logs):    # the layout and the public names must agree
+            raise RuntimeError(f"parameter layout {self.names} differs from {parameter_names(spec, logs)}")
 
     def _split(self, values: Mapping, i: int):
         spec = self.spec
@@ -516,11 +660,12 @@ class _LogProblem(_Problem):
         tissue = np.array([values[k] for k in self.law.param_names])
         g = np.array([values[f"g{j}"] for j in range(1, spec.prony + 1)])
         tau = np.array([values[f"tau{j}_s"] for j in range(1, spec.prony + 1)])
-        off = values[f"contact_offset_mm{sfx}"] if spec.contact_offset else 0.0
+        off = values[f"contact_offset_mm{sfx}"] if _shifted(spec, self.logs[i]) else 0.0
+        toe = values[f"contact_toe_mm{sfx}"] if spec.contact_offset else 0.0
         b0 = values[f"baseline_n{sfx}"] if spec.baseline_drift else 0.0
         b1 = values[f"drift_n_per_s{sfx}"] if spec.baseline_drift else 0.0
         c = values["compliance_mm_per_n"] if spec.compliance else 0.0
-        return tissue, g, tau, off, c, b0, b1
+        return tissue, g, tau, off, c, b0, b1, toe
 
     def predict(self, values: Mapping) -> list[np.ndarray]:
         return [_log_force(lg, self.spec, self.law, *self._split(values, i)) for i, lg in enumerate(self.logs)]
@@ -529,11 +674,18 @@ class _LogProblem(_Problem):
         values = self.to_values(theta)
         data = self.data if data is None else data
         pred = self.predict(values)
-        return np.concatenate([w * (p[m] - d) for w, p, m, d in zip(self.weights, pred, self.used, data)])
+        prior = [np.array([scale * contact_prior_residual(theta[j] / sd) for j, scale, sd in self.prior_rows])]
+        return np.concatenate([w * (p[m] - d) for w, p, m, d in zip(self.weights, pred, self.used, data)] + prior)
 
     def raw_residuals(self, values, data=None) -> list[np.ndarray]:
         data = self.data if data is None else data
         return [p[m] - d for p, m, d in zip(self.predict(values), self.used, data)]
+
+    def row_weights(self) -> np.ndarray:
+        """The weight of every row of :meth:`residual`: its log's (the priors' rows too)."""
+        rows = [np.full(int(m.sum()), w) for w, m in zip(self.weights, self.used)]
+        prior_w = [self.weights[i] for i in self.prior_log]
+        return np.concatenate(rows + [np.array(prior_w, dtype=float)])
 
     # -- global stage -------------------------------------------------------------------
 
@@ -576,6 +728,10 @@ class _LogProblem(_Problem):
         for p in self.pars:
             if p.name.startswith("contact_offset_mm"):
                 v[p.name] = 0.0
+            elif p.name.startswith("contact_toe_mm"):
+                # Not 0: at a flat top the force is flat in c to first order, so a fit started
+                # there would stay.
+                v[p.name] = _TOE_START_MM
             elif p.name.startswith(("baseline_n", "drift_n_per_s")):
                 v[p.name] = 0.0
             elif p.name == "compliance_mm_per_n":
@@ -609,14 +765,20 @@ class _LogProblem(_Problem):
             coef, sse, nu = _bounded_linear(cols, nuis, y)
             scored.append((sse, combo, coef, nu))
         scored.sort(key=lambda s: s[0])
-        picks, seen = [], set()
+        picks, seen = [], {}
         # The best of every sign pattern first (alpha's sign matters), then the best overall.
+        # Several terms: the best two of every pattern, because the grid's best of a pattern
+        # can sit in another basin than the pattern's optimum (a two-term truth with alpha
+        # -8 / +4: the grid's best mixed pair is (-6.5, 20), its second (-9, 0.5) leads to it).
+        per_pattern = 1 if nterm == 1 else 2
         for s in scored:
             pat = tuple(np.sign(s[1]))
-            if pat not in seen:
-                seen.add(pat)
+            if seen.get(pat, 0) < per_pattern:
+                seen[pat] = seen.get(pat, 0) + 1
                 picks.append(s)
-        picks = sorted(picks, key=lambda s: s[0])[:max(2, n_keep // 2 + 1)]
+        picks = sorted(picks, key=lambda s: s[0])
+        if nterm == 1:
+            picks = picks[:max(2, n_keep // 2 + 1)]
         for s in scored:
             if len(picks) >= n_keep:
                 break
@@ -804,20 +966,28 @@ def _central_jacobian(problem: _Problem, theta, bounds) -> np.ndarray:
     return jac
 
 
-def _covariance(jac: np.ndarray, sse: float, n: int, p: int) -> np.ndarray:
+def _covariance(jac: np.ndarray, sse: float, n: int, p: int, row_weights: np.ndarray | None = None) -> np.ndarray:
+    """``s^2 (J^T J)^{-1}``; with ``row_weights`` the sandwich form (module docstring).
+
+    ``jac`` is the weighted residual's Jacobian; ``sse`` the weighted sum of squares, or with
+    ``row_weights`` the sum of squares of the residuals divided by their weights.
+    """
     if n <= p:
         return np.full((p, p), np.nan)
     s2 = sse / (n - p)
     _, sv, vt = np.linalg.svd(jac, full_matrices=False)
     tol = np.finfo(float).eps * max(jac.shape) * (sv[0] if len(sv) else 0.0)
-    if np.any(sv <= tol):
+    good = sv > tol
+    inv = (vt[good].T / sv[good] ** 2) @ vt[good]
+    if row_weights is not None:
+        jw = jac * np.asarray(row_weights, dtype=float)[:, None]
+        inv = inv @ (jw.T @ jw) @ inv
+    if not good.all():
         cov = np.full((p, p), np.nan)
-        good = sv > tol
-        inv = (vt[good].T / sv[good] ** 2) @ vt[good]
         ok = np.all(np.abs(vt[~good]) < 1e-8, axis=0)     # directions untouched by the null space
         cov[np.ix_(ok, ok)] = s2 * inv[np.ix_(ok, ok)]
         return cov
-    return s2 * (vt.T / sv**2) @ vt
+    return s2 * inv
 
 
 def _intervals(problem: _Problem, theta, cov, n, p) -> dict:
@@ -904,13 +1074,17 @@ def _solve(problem: _Problem, starts: list[dict], *, seed: int, bootstrap: int) 
     bnds = problem.bounds(theta)
     values = problem.to_values(theta)
     r = problem.residual(theta)
-    n, p = len(r), len(theta)
+    # Rows: the data's residuals and the contact priors' pseudo-observations (one per prior,
+    # with its parameter: they leave the residual degrees of freedom n - p of the data).
+    rows, n, p = len(r), int(problem.n_obs), len(theta)
     sse = float(np.dot(r, r))
     finite = bool(np.all(np.isfinite(theta)) and np.isfinite(sse))
     success = bool(res.status > 0 and finite and n > p)
-    jac = _central_jacobian(problem, theta, bnds) if finite else np.full((n, p), np.nan)
-    cov = _covariance(jac, sse, n, p) if finite else np.full((p, p), np.nan)
-    ci = _intervals(problem, theta, cov, n, p)
+    jac = _central_jacobian(problem, theta, bnds) if finite else np.full((rows, p), np.nan)
+    row_w = problem.row_weights() if problem.kind == "logs" and len(problem.logs) > 1 else None
+    sse_cov = float(np.sum((r / row_w) ** 2)) if row_w is not None else sse
+    cov = _covariance(jac, sse_cov, rows, p, row_w) if finite else np.full((p, p), np.nan)
+    ci = _intervals(problem, theta, cov, rows, p)
     sse_n = max(sse, np.finfo(float).tiny) / max(n, 1)
     aic = float(n * np.log(sse_n) + 2 * p)
     bic = float(n * np.log(sse_n) + p * np.log(max(n, 1)))
