@@ -8,6 +8,7 @@ import io
 import json
 import os
 import platform
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Any, Iterable
@@ -117,14 +118,20 @@ def _umask() -> int:
     return mask
 
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    """Write to a temporary file in the same folder, fsync, then rename over ``path``."""
+def atomic_write_bytes(path: str | os.PathLike, data) -> None:
+    """Write to a temporary file in the same folder, fsync, then rename over ``path``.
+
+    ``data`` is bytes, or a binary file object read from its start (copied in blocks)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
-            f.write(data)
+            if isinstance(data, (bytes, bytearray, memoryview)):
+                f.write(data)
+            else:
+                data.seek(0)
+                shutil.copyfileobj(data, f, 1 << 20)
             f.flush()
             os.fsync(f.fileno())
         # mkstemp creates 0600; a result file gets the permissions an ordinary file would.
@@ -154,7 +161,9 @@ class ResultSet:
     def __init__(self, out: str | os.PathLike, primary: str | None = None):
         self.out = Path(out)
         self.primary = primary
-        self.files: dict[str, bytes] = {}
+        # bytes, or (for tables) an anonymous temporary file: a long sequence's CSV tables
+        # then wait on disk, not in memory (unlinked at creation, so a kill leaves nothing)
+        self.files: dict[str, Any] = {}
 
     def add_bytes(self, name: str, data: bytes) -> None:
         self.files[name] = data
@@ -168,7 +177,9 @@ class ResultSet:
     def add_csv(self, name: str, df, **kw) -> None:
         kw.setdefault("index", False)
         kw.setdefault("lineterminator", "\n")
-        self.add_text(name, df.to_csv(**kw))
+        f = tempfile.TemporaryFile()
+        df.to_csv(f, encoding="utf-8", **kw)
+        self.files[name] = f
 
     def add_figure(self, name: str, fig, dpi: int = 120) -> None:
         buf = io.BytesIO()
@@ -184,4 +195,7 @@ class ResultSet:
         for n in names:
             atomic_write_bytes(self.out / n, self.files[n])
             written.append(self.out / n)
+        for f in self.files.values():
+            if hasattr(f, "close"):
+                f.close()
         return written

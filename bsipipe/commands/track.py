@@ -349,7 +349,7 @@ def _smooth(table: pd.DataFrame) -> tuple[pd.DataFrame, dict]:
     """:func:`bsipipe.imaging.smooth.smooth_tracks` on the 2-D table (frames as the clock
     where there are no time stamps) and the ``smoothing`` section of ``track.json``."""
     from ..imaging.smooth import smooth_tracks
-    t = table.copy()
+    t = table[["view", "frame", "time_s", "marker", "x_px", "y_px", "snr", "found"]].copy()
     clock = "s"
     if t["time_s"].isna().any():
         t["time_s"] = t["frame"].astype(float)
@@ -361,9 +361,10 @@ def _smooth(table: pd.DataFrame) -> tuple[pd.DataFrame, dict]:
         t["time_s"] = t["frame"].astype(float)
         clock = "frame"
         sm, models = smooth_tracks(t)
-    out = table.copy()
+    out = table        # the caller's own table: columns added, not copied
     for c in ("sd_px", "x_px_smooth", "y_px_smooth", "sd_px_smooth", "smooth_outlier"):
         out[c] = sm[c].to_numpy()
+    del sm, t
     return out, {
         "method": "Kalman filter + Rauch-Tung-Striebel smoother per track and axis, white-noise acceleration; "
                   "process noise q and the scale of the detector's error model (sd = 0.798 / SNR per axis, "

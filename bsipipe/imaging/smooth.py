@@ -229,20 +229,39 @@ def _spike(times: np.ndarray, Zu: np.ndarray, sd: np.ndarray, k_sigma: float = 3
     return off
 
 
-def _fit_view(times, Zu, SDu, Q, Sc):
-    """Maximum-likelihood (q, scale) per marker on the grid, then the RTS smoother with them.
+def _fit_view(times, Zu, SDu, qs, scales):
+    """Maximum-likelihood (q, scale) per marker, then the RTS smoother with them.
 
-    ``Zu`` (n, m, 2) positions (NaN: none), ``SDu`` (n, m) raw per-axis sd.  Returns
-    ``q``, ``scale`` (m,), smoothed positions and variances (n, 2 m; lane 2 marker + axis)."""
+    The grid ``qs`` x ``scales`` is searched coarse to fine: every 4th q and every 2nd scale
+    first, then the full grid's points within a coarse step of each marker's best (markers
+    sharing a best share the fine pass).  ``Zu`` (n, m, 2) positions (NaN: none), ``SDu``
+    (n, m) raw per-axis sd.  Returns ``q``, ``scale`` (m,), smoothed positions and variances
+    (n, 2 m; lane 2 marker + axis)."""
     n, m = Zu.shape[:2]
-    G = Q.size
-    # every (marker, axis) under every grid model (q, scale) at once: lanes (2 m, G)
-    (ll,) = _filter(times, Zu.reshape(n, 2 * m), np.repeat(SDu, 2, axis=1) ** 2, Q, scale2=Sc ** 2)
-    ll = ll.reshape(m, 2, G).sum(axis=1)          # both axes
-    best = np.argmax(ll, axis=1)
-    q_best, s_best = Q[best], Sc[best]
+    Z2 = Zu.reshape(n, 2 * m)
+    R2 = np.repeat(SDu, 2, axis=1) ** 2
+
+    def loglik(markers, iq, js):
+        Q, S = (a.ravel() for a in np.meshgrid(qs[iq], scales[js], indexing="ij"))
+        cols = np.stack([2 * markers, 2 * markers + 1], axis=1).ravel()
+        # every (marker, axis) under every model (q, scale) at once: lanes (2 m, G)
+        (ll,) = _filter(times, Z2[:, cols], R2[:, cols], Q, scale2=S ** 2)
+        return ll.reshape(len(markers), 2, -1).sum(axis=1), Q, S      # both axes
+
+    cq, cs = np.arange(0, len(qs), 4), np.arange(0, len(scales), 2)
+    ll, _, _ = loglik(np.arange(m), cq, cs)
+    b = np.argmax(ll, axis=1)
+    bq, bs = cq[b // len(cs)], cs[b % len(cs)]
+    q_best, s_best = np.empty(m), np.empty(m)
+    for key in sorted(set(zip(bq.tolist(), bs.tolist()))):
+        mk = np.flatnonzero((bq == key[0]) & (bs == key[1]))
+        fq = np.arange(max(0, key[0] - 3), min(len(qs), key[0] + 4))
+        fs = np.arange(max(0, key[1] - 2), min(len(scales), key[1] + 3))
+        ll, Q, S = loglik(mk, fq, fs)
+        b2 = np.argmax(ll, axis=1)
+        q_best[mk], s_best[mk] = Q[b2], S[b2]
     r2 = np.repeat(SDu ** 2 * s_best ** 2, 2, axis=1)
-    _, F, Pr, dts = _filter(times, Zu.reshape(n, 2 * m), r2, np.repeat(q_best, 2), keep=True)
+    _, F, Pr, dts = _filter(times, Z2, r2, np.repeat(q_best, 2), keep=True)
     xs, var = _rts(F, Pr, dts)
     return q_best, s_best, xs, var
 
@@ -272,7 +291,6 @@ def smooth_tracks(table: pd.DataFrame, *, log_q_grid=LOG_Q_GRID, scale_grid=SCAL
     models: list[TrackSmoothing] = []
     qs = 10.0 ** np.asarray(log_q_grid, float)
     scales = np.asarray(scale_grid, float)
-    Q, Sc = (a.ravel() for a in np.meshgrid(qs, scales, indexing="ij"))
     for view, vt in out.groupby("view", sort=False):
         frames = np.sort(vt["frame"].unique())
         times = vt.groupby("frame")["time_s"].first().reindex(frames).to_numpy(float)
@@ -298,7 +316,7 @@ def smooth_tracks(table: pd.DataFrame, *, log_q_grid=LOG_Q_GRID, scale_grid=SCAL
             continue
         Zu = Z[:, :, use].transpose(0, 2, 1)                # (n, m, 2): lane = 2 * marker + axis
         SDu = np.where(np.isfinite(SD[:, use]), SD[:, use], 1.0)
-        q_best, s_best, xs, var = _fit_view(times, Zu, SDu, Q, Sc)
+        q_best, s_best, xs, var = _fit_view(times, Zu, SDu, qs, scales)
         # a detection far off its smoothed track (a bad centre) is left out and the track refitted
         # (judged on a robust scale of the residuals: the likelihood's scale grows to take in an outlier)
         resid = np.abs(Zu - xs.reshape(n, use.size, 2)) / SDu[:, :, None]
@@ -310,7 +328,7 @@ def smooth_tracks(table: pd.DataFrame, *, log_q_grid=LOG_Q_GRID, scale_grid=SCAL
         outlier &= _spike(times, Zu, SDu * robust[None, :])
         if outlier.any():
             Zu = np.where(outlier[:, :, None], np.nan, Zu)
-            q_best, s_best, xs, var = _fit_view(times, Zu, SDu, Q, Sc)
+            q_best, s_best, xs, var = _fit_view(times, Zu, SDu, qs, scales)
         out_rows = np.zeros(len(vt), bool)
         for a, j in enumerate(use):
             seen = np.isfinite(Zu[:, a, 0])
