@@ -203,14 +203,8 @@ def test_calibration_with_the_field_covered_has_no_warning(tmp_path):
 
 # --------------------------------------------------------------------------- track
 
-SYNTH_TINY = {
-    "seed": 3,
-    "image": {"size_px": 256, "supersample": 2},
-    "geometry": {"intensifier_diameter_mm": 80.0},
-    "distortion": {"pincushion_edge_px": 3.0, "tangential_edge_px": 0.3},
-    "calibration": {"views": 4, "stereo_views": 3, "grid": [4, 9], "spacing_mm": 3.0, "bead_diameter_mm": 0.8},
-    "sequence": {"n_frames": 8, "fps": 0.5},
-}
+# The twin of configs/study_tiny.yaml (256 px frames, 4 + 3 calibration views, 8 frames).
+SYNTH_TINY = yaml.safe_load((Path(__file__).resolve().parents[1] / "configs" / "study_tiny.yaml").read_text())["synth"]
 
 
 @pytest.fixture(scope="module")

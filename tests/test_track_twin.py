@@ -129,11 +129,7 @@ def test_twin_2d_no_swaps_and_occlusion_refound(twin):
 def test_twin_3d_error_and_view_time_offset(twin):
     """3-D error RMS under 0.05 mm against the true trajectories; the loop names
     view-time-offset, estimates it within 10 % and the ray gap falls."""
-    truth = twin["truth"]
-    V = views_from_calibration(truth_calibration(truth))
-    table = pd.concat([r.table for r in twin["results"].values()], ignore_index=True)
-    loop, fit, _ = close_stereo_loop(stereo_data(table, (V["cam1"], V["cam2"])))
-    steps = loop["steps"]
+    steps, err = _loop_and_3d(twin)
     assert steps and steps[0]["effect"] == "view-time-offset"
     s = steps[0]
     est = s["params"]["view_time_offset_s"]
@@ -144,13 +140,6 @@ def test_twin_3d_error_and_view_time_offset(twin):
     assert s["ray_gap_rms_mm_after"] < s["ray_gap_rms_mm_before"]
     assert "identity-swap" not in [x["effect"] for x in steps]
     # 3-D points (cam1's camera frame) against the truth (world -> cam1)
-    R1 = np.asarray(truth["cameras"]["cam1"]["R"])
-    t1 = np.asarray(truth["cameras"]["cam1"]["t_mm"])
-    traj = truth["sequence"]["trajectories_mm"]
-    p = fit.points.dropna(subset=["x_mm"])
-    X = p[["x_mm", "y_mm", "z_mm"]].to_numpy()
-    T = np.array([traj[m][f] for m, f in zip(p["marker"], p["frame"])]) @ R1.T + t1
-    err = np.linalg.norm(X - T, axis=1)
     rms = float(np.sqrt(np.mean(err ** 2)))
     print(f"3-D error RMS {rms:.4f} mm over {len(err)} points (max {err.max():.3f} mm)")
     assert rms < 0.05

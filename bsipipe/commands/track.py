@@ -521,7 +521,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         table, smoothing = _smooth(table)
         if fit is not None:
             # triangulate the smoothed centres with the loop's final model (offset as estimated)
-            from ..imaging.track_effects import StereoSpec, stereo_data, stereo_fit
+            from ..imaging.track_effects import StereoSpec, stereo_fit   # stereo_data: imported above
             sub = table[table["view"].isin(pair)].copy()
             ok = sub["x_px_smooth"].notna() & sub["y_px_smooth"].notna()
             sub["x_px"], sub["y_px"] = sub["x_px_smooth"], sub["y_px_smooth"]

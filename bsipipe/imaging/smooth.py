@@ -34,8 +34,9 @@ background is not white noise); :math:`q` is large where the motion is abrupt, a
 smoother then follows the data.  A frame where the marker was not found is bridged by the
 model but keeps no smoothed value (the table says where the marker was seen).
 
-Grids cover :math:`\log_{10} q \in [-6, 6]` and :math:`s \in [0.5, 4]`; every track and grid
-point is filtered at once with vectorised NumPy (each track's measurements shared by its
+Grids cover :math:`\log_{10} q \in [-6, 6]` (steps of 0.25) and :math:`s \in [0.5, 4]` (13
+steps), searched coarse to fine (every 4th q and 2nd s, then the full grid near each track's
+best); every track and grid point of a pass is filtered at once with vectorised NumPy (each track's measurements shared by its
 grid models, not copied per model), so a 2,000-frame view of 10 markers takes under a
 second and little memory.
 """

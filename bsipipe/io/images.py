@@ -139,15 +139,19 @@ def _finish(a: np.ndarray, dtype, rgb_order: bool, channel, path, frame=None) ->
 
 # --- single files --------------------------------------------------------------------------
 
+def _head_and_tail(path: Path, n_head: int, n_tail: int) -> tuple[bytes, bytes]:
+    """The first ``n_head`` and the last ``n_tail`` bytes of a file."""
+    with open(path, "rb") as f:
+        head = f.read(n_head)
+        f.seek(max(0, f.seek(0, os.SEEK_END) - n_tail))
+        return head, f.read()
+
+
 def _check_jpeg_complete(path: Path) -> None:
     """libjpeg decodes a truncated JPEG with only a warning; a complete one ends with EOI."""
-    with open(path, "rb") as f:
-        if f.read(2) != b"\xff\xd8":
-            raise InputError("not a JPEG file (no start-of-image marker)", path=path)
-        f.seek(0, os.SEEK_END)
-        size = f.tell()
-        f.seek(max(0, size - 64))
-        tail = f.read()
+    head, tail = _head_and_tail(path, 2, 64)
+    if head != b"\xff\xd8":
+        raise InputError("not a JPEG file (no start-of-image marker)", path=path)
     if b"\xff\xd9" not in tail:
         raise InputError("JPEG file is truncated (no end-of-image marker)", path=path)
 
@@ -155,14 +159,8 @@ def _check_jpeg_complete(path: Path) -> None:
 def _check_png_complete(path: Path) -> None:
     """libpng prints its own error line for a truncated PNG; a complete one ends with IEND.
     (Content without the PNG signature is left to OpenCV, which decodes by content.)"""
-    with open(path, "rb") as f:
-        if f.read(8) != b"\x89PNG\r\n\x1a\n":
-            return
-        f.seek(0, os.SEEK_END)
-        size = f.tell()
-        f.seek(max(0, size - 12))
-        tail = f.read()
-    if b"IEND" not in tail:
+    head, tail = _head_and_tail(path, 8, 12)
+    if head == b"\x89PNG\r\n\x1a\n" and b"IEND" not in tail:
         raise InputError("PNG file is truncated (no IEND chunk at the end)", path=path)
 
 
