@@ -7,9 +7,16 @@ exits 1, each with one message on stderr and no traceback unless ``-v`` is given
 
 from __future__ import annotations
 
-import functools
-import logging
-import sys
+import os
+
+# numpy's OpenBLAS starts a thread per core that spins between calls; bsipipe's linear algebra
+# is many small systems, where the extra threads only burn CPU (``bsipipe track``: 10-15 % of
+# its CPU time). Set before numpy is imported; a value the user set is kept.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import functools  # noqa: E402
+import logging  # noqa: E402
+import sys  # noqa: E402
 
 import click
 

@@ -177,8 +177,9 @@ class ResultSet:
     def add_csv(self, name: str, df, **kw) -> None:
         kw.setdefault("index", False)
         kw.setdefault("lineterminator", "\n")
+        from .io.csvtable import write_csv
         f = tempfile.TemporaryFile()
-        df.to_csv(f, encoding="utf-8", **kw)
+        write_csv(df, f, encoding="utf-8", **kw)
         self.files[name] = f
 
     def add_figure(self, name: str, fig, dpi: int = 120) -> None:

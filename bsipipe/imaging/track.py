@@ -289,9 +289,15 @@ def track_view(frames: Iterable, seeds: pd.DataFrame | dict | None, diameter_px:
             events.append({"view": view, "frame": f, "marker": live[j].name, "kind": "ambiguous",
                            "other": live[i].name, "detail": "the two markers could be matched the other way round"})
         nm = len(live)
-        val = {c: np.full(nm, np.nan) for c in ("x_px", "y_px", "snr", "amplitude", "area_px", "sigma_px")}
-        found = np.zeros(nm, bool)
+        hit = match >= 0
+        val = {}
+        for name in ("x_px", "y_px", "snr", "amplitude", "area_px", "sigma_px"):
+            arr = np.full(nm, np.nan)
+            arr[hit] = cand[name][match[hit]]
+            val[name] = arr
+        found = hit.copy()
         status = ["lost"] * nm
+        xs, ys, amps, sigs = (val[c].tolist() for c in ("x_px", "y_px", "amplitude", "sigma_px"))
         for i, m in enumerate(live):
             j = match[i]
             if j < 0:
@@ -304,13 +310,9 @@ def track_view(frames: Iterable, seeds: pd.DataFrame | dict | None, diameter_px:
                                    "last_x_px": float(m.pos[0]), "last_y_px": float(m.pos[1]),
                                    "gate_px": float(gates[i]), "detail": why})
             else:
-                c = {k: float(v[j]) for k, v in cand.items()}
-                amp = c["amplitude"]
+                amp = amps[i]
                 med = m.amp_median
                 partial = bool(np.isfinite(med) and amp < settings.partial_fraction * med)
-                for name, arr in val.items():
-                    arr[i] = c[name]
-                found[i] = True
                 status[i] = "partial" if partial else "found"
                 if m.lost_since is not None:
                     events.append({"view": view, "frame": f, "marker": m.name, "kind": "refound",
@@ -322,8 +324,7 @@ def track_view(frames: Iterable, seeds: pd.DataFrame | dict | None, diameter_px:
                     events.append({"view": view, "frame": f, "marker": m.name, "kind": "partial",
                                    "amplitude_ratio": amp / med,
                                    "detail": "amplitude below its median: partly hidden, centre may be biased"})
-                m.update(f, np.array([c["x_px"], c["y_px"]]), amp if not partial else np.nan,
-                         float(c["sigma_px"]) if not partial else np.nan)
+                m.update(f, (xs[i], ys[i]), amp if not partial else np.nan, sigs[i] if not partial else np.nan)
         for name, arr in val.items():
             cols[name].append(arr)
         cols["frame"].append(f)

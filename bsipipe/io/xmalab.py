@@ -34,16 +34,23 @@ _CAM_RE = re.compile(r"^(?P<marker>.+)_cam(?P<cam>\d+)_(?P<axis>[XY])$")
 _3D_RE = re.compile(r"^(?P<marker>.+)_(?P<axis>[XYZ])$")
 
 
-def _fmt(v: float) -> str:
-    return "NaN" if not np.isfinite(v) else f"{v:.12g}"
+def _write(header: list[str], arr: np.ndarray) -> str:
+    """Header and one line per row of ``arr``: 12 significant digits, ``NaN`` where not finite
+    (formatted a column at a time: a long sequence has hundreds of thousands of values)."""
+    cols = []
+    for c in np.asarray(arr, float).T:
+        s = [f"{v:.12g}" for v in c.tolist()]
+        for i in np.flatnonzero(~np.isfinite(c)).tolist():
+            s[i] = "NaN"
+        cols.append(s)
+    rows = (",".join(r) + "\n" for r in zip(*cols)) if cols else ("\n" for _ in range(len(arr)))
+    return ",".join(header) + "\n" + "".join(rows)
 
 
-def _write(header: list[str], rows: list[list[float]]) -> str:
-    buf = io.StringIO()
-    buf.write(",".join(header) + "\n")
-    for r in rows:
-        buf.write(",".join(_fmt(v) for v in r) + "\n")
-    return buf.getvalue()
+def _positions(keys, order) -> np.ndarray:
+    """Index of each key in ``order`` (-1 where it is not there)."""
+    pos = {k: i for i, k in enumerate(order)}
+    return np.array([pos.get(k, -1) for k in keys], dtype=np.int64)
 
 
 def format_xmalab_2d(points: pd.DataFrame, views: Sequence[str], markers: Sequence[str] | None = None,
@@ -60,20 +67,19 @@ def format_xmalab_2d(points: pd.DataFrame, views: Sequence[str], markers: Sequen
         n = int(p["frame"].max()) + 1 if len(p) else 0
         frames = range(n)
     frames = list(frames)
-    fpos = {f: i for i, f in enumerate(frames)}
-    cols = {(m, v): k for k, (m, v) in enumerate((m, v) for m in markers for v in views)}
-    arr = np.full((len(frames), 2 * len(cols)), np.nan)
-    for r in p.itertuples(index=False):
-        i, k = fpos.get(r.frame), cols.get((r.marker, r.view))
-        if i is not None and k is not None:
-            arr[i, 2 * k] = r.x_px
-            arr[i, 2 * k + 1] = r.y_px
+    pairs = [(m, v) for m in markers for v in views]
+    arr = np.full((len(frames), 2 * len(pairs)), np.nan)
+    i = _positions(p["frame"].tolist(), frames)
+    k = _positions(zip(p["marker"].tolist(), p["view"].tolist()), pairs)
+    ok = (i >= 0) & (k >= 0)
+    arr[i[ok], 2 * k[ok]] = p["x_px"].to_numpy(float)[ok]
+    arr[i[ok], 2 * k[ok] + 1] = p["y_px"].to_numpy(float)[ok]
     # a point is missing in XMALab when either coordinate is
     miss = ~np.isfinite(arr[:, 0::2]) | ~np.isfinite(arr[:, 1::2])
     arr[:, 0::2][miss] = np.nan
     arr[:, 1::2][miss] = np.nan
     header = [f"{m}_cam{j + 1}_{a}" for m in markers for j in range(len(views)) for a in "XY"]
-    return _write(header, arr.tolist())
+    return _write(header, arr)
 
 
 def format_xmalab_3d(points: pd.DataFrame, markers: Sequence[str] | None = None,
@@ -84,17 +90,16 @@ def format_xmalab_3d(points: pd.DataFrame, markers: Sequence[str] | None = None,
         n = int(points["frame"].max()) + 1 if len(points) else 0
         frames = range(n)
     frames = list(frames)
-    fpos = {f: i for i, f in enumerate(frames)}
-    mpos = {m: j for j, m in enumerate(markers)}
     arr = np.full((len(frames), 3 * len(markers)), np.nan)
-    for r in points.itertuples(index=False):
-        i, j = fpos.get(r.frame), mpos.get(r.marker)
-        if i is not None and j is not None:
-            arr[i, 3 * j:3 * j + 3] = (r.x_mm, r.y_mm, r.z_mm)
+    i = _positions(points["frame"].tolist(), frames)
+    j = _positions(points["marker"].tolist(), markers)
+    ok = (i >= 0) & (j >= 0)
+    for a, c in enumerate(("x_mm", "y_mm", "z_mm")):
+        arr[i[ok], 3 * j[ok] + a] = points[c].to_numpy(float)[ok]
     miss = ~np.isfinite(arr.reshape(len(frames), -1, 3)).all(axis=2)
     arr.reshape(len(frames), -1, 3)[miss] = np.nan
     header = [f"{m}_{a}" for m in markers for a in "XYZ"]
-    return _write(header, arr.tolist())
+    return _write(header, arr)
 
 
 def _read_table(path: str | os.PathLike) -> tuple[list[str], np.ndarray]:
