@@ -220,21 +220,61 @@ def test_real_xray_dots_are_dark_and_on_a_lattice(dot_grid):
     assert len(xy) > 4300 and tuple(span) == (85, 52)
 
 
-def _discorpy_coarse_centre(xy: np.ndarray, ij: np.ndarray) -> np.ndarray:
+def _coarse_centre_from_lines(rows: list[np.ndarray], cols: list[np.ndarray]) -> np.ndarray:
     """discorpy's ``find_cod_coarse`` (Vo et al. 2015), written out as its documentation
-    describes it, for comparing estimators on the same dots: parabolas in image coordinates
-    (rows y(x), columns x(y)), the first adjacent pair of lines whose curvatures differ in
-    sign, the mean of their intercepts and slopes as a straight line, and the two lines'
-    intersection."""
-    def pair(axis):
-        lines = [np.flatnonzero(ij[:, axis] == v) for v in np.unique(ij[:, axis])]
-        t, s = (0, 1) if axis == 1 else (1, 0)
-        abc = np.array([np.polyfit(xy[i, t], xy[i, s], 2) for i in lines])
+    describes it: lines of (x, y) dots in order, rows top to bottom and columns left to
+    right; parabolas in image coordinates (rows y(x), columns x(y)), the first adjacent pair
+    of lines whose curvatures differ in sign, the mean of their intercepts and slopes as a
+    straight line, and the two lines' intersection."""
+    def pair(lines, t, s):
+        abc = np.array([np.polyfit(p[:, t], p[:, s], 2) for p in lines])
         k = int(np.argmax(np.abs(np.diff(np.sign(abc[:, 0]))))) + 1
         return 0.5 * (abc[k - 1, 2] + abc[k, 2]), 0.5 * (abc[k - 1, 1] + abc[k, 1])
-    y0, bh = pair(1)  # row: y = y0 + bh x
-    x0, bv = pair(0)  # column: x = x0 + bv y
+    y0, bh = pair(rows, 0, 1)  # row: y = y0 + bh x
+    x0, bv = pair(cols, 1, 0)  # column: x = x0 + bv y
     return np.array([(x0 + y0 * bv) / (1 - bh * bv), (y0 + x0 * bh) / (1 - bh * bv)])
+
+
+def _discorpy_coarse_centre(xy: np.ndarray, ij: np.ndarray) -> np.ndarray:
+    """:func:`_coarse_centre_from_lines` on dots ``xy`` with lattice indices ``ij`` (column, row)."""
+    rows = [xy[ij[:, 1] == v] for v in np.unique(ij[:, 1])]
+    cols = [xy[ij[:, 0] == v] for v in np.unique(ij[:, 0])]
+    return _coarse_centre_from_lines(rows, cols)
+
+
+def _discorpy_lines() -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """discorpy's own grouped dot lines of ``dot_pattern_05`` (PROVENANCE.md), as (x, y)."""
+    d = np.load(DOTS / "discorpy_lines_dot05.npz")
+    out = []
+    for pts, lab in ((d["rows_yx"], d["row_line"]), (d["cols_yx"], d["col_line"])):
+        out.append([pts[lab == k][:, ::-1] for k in np.unique(lab)])
+    return out[0], out[1]
+
+
+def test_discorpy_reference_centre_resolution():
+    """How precisely discorpy's published centre is known.  Its ``find_cod_coarse`` on its own
+    dot lines reproduces the published (588.693, 462.093); resampling the dots within each
+    line (a bootstrap: the same procedure on a slightly different draw of the same dots)
+    moves it by whole line pitches (15 px), because the columns' curvature changes sign more
+    than once and the procedure takes the first change.  Its standard deviation in x is
+    several times the 5 px the issue asks us to match it to: the published x is one draw."""
+    rows, cols = _discorpy_lines()
+    ref = np.array([588.693, 462.093])
+    c = _coarse_centre_from_lines(rows, cols)
+    assert np.allclose(c, ref, atol=0.01), c
+    rng = np.random.default_rng(0)
+    boot = np.array([_coarse_centre_from_lines([p[np.sort(rng.integers(0, len(p), len(p)))] for p in rows],
+                                               [p[np.sort(rng.integers(0, len(p), len(p)))] for p in cols])
+                     for _ in range(300)])
+    sd = boot.std(axis=0)
+    xs = np.sort(boot[:, 0])
+    outcomes_x = np.array([g.mean() for g in np.split(xs, np.flatnonzero(np.diff(xs) > 5.0) + 1)]).round(1)
+    frac_published = np.mean(np.hypot(*(boot - ref).T) < 1.0)
+    print(f"discorpy's procedure on its own dots, 300 bootstrap draws: sd ({sd[0]:.1f}, {sd[1]:.1f}) px, "
+          f"x outcomes (clusters) {outcomes_x.tolist()}, the published value in {100 * frac_published:.0f} %")
+    assert sd[0] > 3 * 5.0           # the reference's own spread is far beyond the 5 px criterion
+    assert 0.5 < frac_published < 0.95
+    assert len(outcomes_x) >= 2 and np.min(np.diff(outcomes_x)) >= 10.0   # quantised at the line pitch
 
 
 def test_real_xray_dot_grid_distortion(dot_grid):
