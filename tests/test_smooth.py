@@ -1,10 +1,12 @@
 """Kalman/RTS smoothing of 2-D tracks (``bsipipe.imaging.smooth``)."""
 
+import math
+
 import numpy as np
 import pandas as pd
 import pytest
 
-from bsipipe.imaging.smooth import CRB_FACTOR, smooth_tracks
+from bsipipe.imaging.smooth import CRB_FACTOR, LOG_Q_GRID, SCALE_GRID, smooth_tracks
 
 
 def _track(x, y, snr, t, marker="M1", view="cam1"):
@@ -129,3 +131,159 @@ def test_a_marker_that_starts_moving_after_the_first_frame_is_not_an_outlier():
     out, models = smooth_tracks(tab)
     assert not out["smooth_outlier"].any()
     assert out["y_px_smooth"].notna().all()
+
+
+# --- the batched filter against a one-track, one-step-at-a-time reference ---------------------
+
+def _ref_filter(t, z, r, q):
+    """Textbook Kalman filter of one axis of one track under one model, a step at a time
+    (white-noise acceleration; diffuse start at the first measurement).  Returns the
+    log-likelihood and, per step, the predicted and filtered (x, v, p00, p01, p11)."""
+    started = False
+    x = v = p00 = p01 = p11 = 0.0
+    ll, pred, filt = 0.0, [], []
+    for k in range(len(t)):
+        if started:
+            dt = t[k] - t[k - 1]
+            x = x + dt * v
+            p00, p01, p11 = (p00 + 2 * dt * p01 + dt * dt * p11 + q * dt ** 3 / 3,
+                             p01 + dt * p11 + q * dt * dt / 2, p11 + q * dt)
+        pred.append((x, v, p00, p01, p11))
+        if not math.isnan(z[k]):
+            if started:
+                S = p00 + r[k]
+                e = z[k] - x
+                ll -= 0.5 * (math.log(2 * math.pi * S) + e * e / S)
+                k0, k1 = p00 / S, p01 / S
+                x, v = x + k0 * e, v + k1 * e
+                p00, p01, p11 = p00 - k0 * p00, p01 - k0 * p01, p11 - k1 * p01
+            else:
+                x, v, p00, p01, p11, started = z[k], 0.0, r[k], 0.0, 1e6, True
+        filt.append((x, v, p00, p01, p11))
+    return ll, pred, filt
+
+
+def _ref_smooth(t, z, r, q):
+    """Rauch-Tung-Striebel smoother of one axis over :func:`_ref_filter`: positions and variances
+    (NaN before the first measurement)."""
+    _, pred, filt = _ref_filter(t, z, r, q)
+    n = len(t)
+    first = int(np.flatnonzero(~np.isnan(z))[0])
+    mean = [np.array(s[:2]) for s in filt], [np.array(s[:2]) for s in pred]
+    cov = [[np.array([[s[2], s[3]], [s[3], s[4]]]) for s in a] for a in (filt, pred)]
+    xs, ps = [None] * n, [None] * n
+    xs[-1], ps[-1] = mean[0][-1], cov[0][-1]
+    for k in range(n - 2, first - 1, -1):
+        F = np.array([[1.0, t[k + 1] - t[k]], [0.0, 1.0]])
+        C = cov[0][k] @ F.T @ np.linalg.inv(cov[1][k + 1])
+        xs[k] = mean[0][k] + C @ (xs[k + 1] - mean[1][k + 1])
+        ps[k] = cov[0][k] + C @ (ps[k + 1] - cov[1][k + 1]) @ C.T
+    x = np.array([np.nan if k < first else xs[k][0] for k in range(n)])
+    var = np.array([np.nan if k < first else ps[k][0, 0] for k in range(n)])
+    return x, var
+
+
+def _assert_variances_close(var, var_ref):
+    """Smoothed variances from a track's first detection on: at the first, under the diffuse
+    start's velocity variance of 1e6, most digits cancel (the reference's matrix inverse and the
+    module's written-out terms round differently there)."""
+    np.testing.assert_allclose(var[0], var_ref[0], rtol=1e-5)
+    np.testing.assert_allclose(var[1:], var_ref[1:], rtol=1e-11)
+
+
+def _ref_loglik(t, z, r, q, s):
+    """Both axes of a track (z (n, 2)) under (q, scale s)."""
+    return sum(_ref_filter(t, z[:, a], r * s ** 2, q)[0] for a in (0, 1))
+
+
+def _ref_fit(t, z, r):
+    """The maximum-likelihood grid point of one track, coarse to fine as documented: every 4th q
+    and 2nd scale, then the full grid within a coarse step of the best (first best in q-major order)."""
+    qs, scales = 10.0 ** LOG_Q_GRID, SCALE_GRID
+
+    def best(cands):
+        return max(cands, key=lambda c: _ref_loglik(t, z, r, qs[c[0]], scales[c[1]]))
+    bq, bs = best([(i, j) for i in range(0, len(qs), 4) for j in range(0, len(scales), 2)])
+    iq, js = best([(i, j) for i in range(max(0, bq - 3), min(len(qs), bq + 4))
+                   for j in range(max(0, bs - 2), min(len(scales), bs + 3))])
+    return qs[iq], scales[js]
+
+
+def _gappy_tracks(t, rng):
+    """Four tracks on clock ``t``: (n, 4, 2) positions with gaps, a late start, an early end and
+    a spike, (n, 4) detector variances."""
+    n = len(t)
+    z = np.empty((n, 4, 2))
+    z[:, 0] = np.stack([300 + 4 * np.sin(t / 3), 200 + 0.5 * t], axis=1)       # moving
+    z[:, 1] = np.stack([350 + 0.3 * t, 260 - 2 * np.cos(t / 5)], axis=1)       # late start, early end
+    z[:, 2] = [420.0, 180.0]                                                   # static
+    z[:, 3] = np.stack([380 + 0.1 * t ** 1.5, 300 + np.where(t > t[n // 2], 3.0, 0.0)], axis=1)   # a slip
+    snr = rng.uniform(8, 20, (n, 4))
+    r = (CRB_FACTOR / snr) ** 2
+    z += rng.normal(0, 1, z.shape) * np.sqrt(r)[:, :, None]
+    missing = rng.random((n, 4)) < 0.1
+    missing[n // 2:n // 2 + 5, 0] = True
+    missing[:6, 1] = missing[n - 6:, 1] = True
+    missing[n // 4 - 2:n // 4 + 3, 0] = False
+    z[missing] = np.nan
+    z[n // 4, 0, 0] += 3.0                                                     # a bad centre (~40 sd)
+    return z, r
+
+
+def test_batched_filter_and_smoother_match_a_one_track_reference():
+    from bsipipe.imaging.smooth import _filter, _rts
+    rng = np.random.default_rng(11)
+    t = np.cumsum(rng.uniform(0.3, 0.7, 40))              # an irregular clock
+    z, r = _gappy_tracks(t, rng)
+    qs = np.array([1e-5, 1e-2, 1.0, 1e2, 1e5])
+    ss = np.array([0.5, 1.0, 1.3, 2.0, 4.0])
+    ll = _filter(t, z, r, qs[None, :], (ss ** 2)[None, :])   # every track under every model
+    ref = [[_ref_loglik(t, z[:, i], r[:, i], q, s) for q, s in zip(qs, ss)] for i in range(4)]
+    np.testing.assert_allclose(ll, ref, rtol=1e-12)
+    qi, si = qs[[0, 2, 3, 4]], ss[[1, 2, 0, 3]]             # a model per track
+    xs, var = _rts(*_filter(t, z, r, qi[:, None], (si ** 2)[:, None], keep=True))
+    for i in range(4):
+        first = np.flatnonzero(~np.isnan(z[:, i, 0]))[0]          # (no smoothed value before)
+        for a in (0, 1):
+            x_ref, var_ref = _ref_smooth(t, z[:, i, a], r[:, i] * si[i] ** 2, qi[i])
+            np.testing.assert_allclose(xs[first:, i, a], x_ref[first:], rtol=1e-10)
+            _assert_variances_close(var[first:, i], var_ref[first:])
+
+
+def test_smooth_tracks_matches_the_reference_fit_per_track():
+    """Views on one clock fitted together, a view on its own clock, a refit after a spike, a
+    static track at the grid's edge, a too-short track: each track's model and smoothed values
+    are those of the one-track reference on its data (the spike left out)."""
+    rng = np.random.default_rng(12)
+    tabs = []
+    for view, t in (("cam1", np.arange(36) * 0.5), ("cam2", np.arange(36) * 0.5),
+                    ("cam3", np.cumsum(rng.uniform(0.3, 0.7, 30)))):
+        z, r = _gappy_tracks(t, rng)
+        for j in range(4):
+            snr = CRB_FACTOR / np.sqrt(r[:, j])
+            tab = _track(z[:, j, 0], z[:, j, 1], np.where(np.isnan(z[:, j, 0]), np.nan, snr), t, f"M{j}", view)
+            tabs.append(tab)
+    short = tabs[-1].copy()
+    short.loc[4:, ["x_px", "y_px", "snr"]] = np.nan          # 4 points: left unsmoothed
+    short["marker"] = "short"
+    table = pd.concat(tabs + [short], ignore_index=True)
+    out, models = smooth_tracks(table)
+    assert [(m.view, m.marker) for m in models] == [(v, f"M{j}") for v in ("cam1", "cam2", "cam3") for j in range(4)]
+    assert out.loc[out.marker == "short", "x_px_smooth"].isna().all()
+    assert sum(m.n_outliers for m in models) >= 3           # the spikes were left out, their tracks refitted
+    assert min(m.q_px2_per_s3 for m in models) == 10.0 ** LOG_Q_GRID[0]     # the static track: fine window clipped
+    for m in models:
+        tr = out[(out.view == m.view) & (out.marker == m.marker)].sort_values("frame")
+        t = tr.time_s.to_numpy()
+        use = tr.x_px.notna() & ~tr.smooth_outlier
+        z = np.where(use.to_numpy()[:, None], tr[["x_px", "y_px"]].to_numpy(), np.nan)
+        r = np.where(use, CRB_FACTOR / tr.snr.to_numpy(), 1.0) ** 2
+        q, s = _ref_fit(t, z, r)
+        assert (m.q_px2_per_s3, m.error_scale) == (q, s), (m.view, m.marker)
+        seen = np.flatnonzero(use)
+        rows = tr.x_px.notna().to_numpy() & (np.arange(len(tr)) >= seen[0]) & (np.arange(len(tr)) <= seen[-1])
+        for a, col in enumerate(("x_px_smooth", "y_px_smooth")):
+            x_ref, var_ref = _ref_smooth(t, z[:, a], r * s ** 2, q)
+            np.testing.assert_allclose(tr[col].to_numpy()[rows], x_ref[rows], rtol=1e-10)
+        _assert_variances_close(tr.sd_px_smooth.to_numpy()[rows] ** 2, var_ref[rows])
+        assert tr.x_px_smooth.notna().sum() == rows.sum()

@@ -36,14 +36,16 @@ model but keeps no smoothed value (the table says where the marker was seen).
 
 Grids cover :math:`\log_{10} q \in [-6, 6]` (steps of 0.25) and :math:`s \in [0.5, 4]` (13
 steps), searched coarse to fine (every 4th q and 2nd s, then the full grid near each track's
-best); every track and grid point of a pass is filtered at once with vectorised NumPy (each track's measurements shared by its
-grid models, not copied per model), so a 2,000-frame view of 10 markers takes under a
-second and little memory.
+best).  Each pass is one Kalman recursion over time whose every step is a few vectorised
+NumPy operations on all tracks under all their grid models at once (and on all views that
+share a clock): tracks' measurements are shared by their models, not copied per model, so a
+2,000-frame stereo pair of 12 markers per view takes about half a second and little memory.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
@@ -78,130 +80,148 @@ def centre_sd_px(snr) -> np.ndarray:
     return CRB_FACTOR / np.asarray(snr, float)
 
 
-def _filter(t: np.ndarray, z: np.ndarray, r: np.ndarray, q: np.ndarray, keep: bool = False,
-            scale2: np.ndarray | None = None):
-    """Kalman filter of lanes in lockstep.
+def _block_loglik(S: np.ndarray, e: np.ndarray, upd: np.ndarray) -> np.ndarray:
+    r"""Log-likelihood terms of a block of filter steps, summed over the steps and both axes.
 
-    ``t`` (n,) times; ``z`` (n, R) measurements (NaN: none); ``r`` (n, R) measurement
-    variances.  Without ``scale2`` there is one lane per column: ``q`` (R,) process noise.
-    With ``scale2`` (G,) every column is filtered under G models at once, lane (i, g) with
-    variance ``r[:, i] * scale2[g]`` and process noise ``q[g]`` (G,): the lanes of a column
-    share its measurements and its clock, so these are not copied G times.  Returns the
-    log-likelihood per lane ((R,) or (R, G)) and, with ``keep`` (no ``scale2``), the
-    filtered and predicted states for the smoother.
+    ``S`` (b, m, G) innovation variances, ``e`` (b, 2, m, G) innovations per axis, ``upd``
+    (b, m, 1) where a measurement entered.  The prediction-error decomposition
+    :math:`-\tfrac12\sum(\log 2\pi S + e^2/S)` per axis; the log is taken once per block, of
+    the product of the block's ``S`` (``np.log`` costs several times another operation), or
+    as a sum of logs where that product could leave the normal range.  ``S`` is infinite where
+    no measurement entered, which takes those steps' ``e^2/S`` out.
     """
-    n, R = z.shape
-    grid = scale2 is not None
-    shape = (R, len(scale2)) if grid else (R,)
-    qq = np.asarray(q, float)[None, :] if grid else np.asarray(q, float)
-    x = np.zeros(shape)
-    v = np.zeros(shape)
-    p00 = np.zeros(shape)
-    p01 = np.zeros(shape)
-    p11 = np.zeros(shape)
-    # which lanes have started and their last time depend on the measurements only: per column
-    started = np.zeros(R, bool)
-    last_t = np.zeros(R)
-    ll = np.zeros(shape)
+    prod = np.multiply.reduce(S, axis=0, where=upd, initial=1.0)
+    normal = (prod > 1e-300) & (prod < 1e300)
+    log_s = np.log(np.where(normal, prod, 1.0))
+    if not normal.all():
+        log_s = np.where(normal, log_s, np.log(np.where(upd, S, 1.0)).sum(axis=0))
+    return -(log_s + upd.sum(axis=0) * np.log(2 * np.pi)) - 0.5 * ((e * e).sum(axis=1) / S).sum(axis=0)
+
+
+def _filter(t: np.ndarray, z: np.ndarray, r: np.ndarray, q, s2, keep: bool = False):
+    r"""Kalman filter of many lanes in lockstep: one vectorised step per time index.
+
+    ``t`` (n,) times of a view; ``z`` (n, m, 2) positions of its m tracks (NaN: not found,
+    both axes together); ``r`` (n, m) the detector's variance of each position (finite);
+    ``q`` and ``s2`` (process noise, squared error scale) broadcastable to (m, G).  Lane
+    (i, g) filters track i under model g: process noise ``q[i, g]``, measurement variance
+    ``r[:, i] * s2[i, g]``.  Returns the log-likelihood (m, G), summed over both axes; with
+    ``keep`` instead the predicted and filtered states of every step, for :func:`_rts`.
+
+    The recursion is written for all lanes at once, in place, without a branch per lane:
+
+    * both axes of a track share its clock, variances and gaps, so they share the covariance
+      (p00, p01, p11): one per lane, and a mean (position, velocity) per lane and axis;
+    * where a track has no measurement (a gap, after its end) its variance is infinite: the
+      gain is 0 and the prediction passes through unchanged;
+    * a track starts (diffuse: position from its first detection, velocity variance 1e6) at its
+      first detection; its lanes run on the same clock before that, from zero, but are overwritten
+      at the start and take in no measurement, so nothing of them reaches the result;
+    * the process noise's terms and the measurement variances are computed per block of steps, and
+      the log-likelihood's terms buffered and summed per block (:func:`_block_loglik`).
+
+    The arithmetic is that of the textbook step, term by term and in its order (no fused or
+    reordered products): the diffuse start makes the second measurement's update cancel most
+    digits of p00, so another grouping would change the results beyond rounding.
+    """
+    n, m = r.shape
+    shape = np.broadcast_shapes(np.shape(q), np.shape(s2), (m, 1))
+    q = np.atleast_2d(np.asarray(q, float))
+    s2 = np.broadcast_to(np.asarray(s2, float), shape)
+    seen = np.isfinite(z[:, :, 0])
+    first = np.where(seen.any(axis=0), seen.argmax(axis=0), n)
+    starts = {int(k): np.flatnonzero(first == k) for k in np.unique(first[first < n])}
+    upd = seen & (np.arange(n)[:, None] > first[None, :])       # a measurement updates the lane
+    r_upd = np.where(upd, r, np.inf)
+    z_upd = np.where(upd[:, :, None], z, 0.0).transpose(0, 2, 1)[..., None]     # (n, 2, m, 1)
+    dt = np.diff(np.asarray(t, float), prepend=t[0])
+    dt_pair = np.stack([2 * dt, dt], axis=1).reshape(n, 2, 1, 1)     # p00 += 2 dt p01, p01 += dt p11 at once
+    X = np.zeros((2, 2) + shape)                 # (position, velocity) x axis: predicted, then filtered
+    pos, vel = X
+    P = np.zeros((3,) + shape)                   # p00, p01, p11: predicted, then filtered
+    p00, p01, p11 = P
     if keep:
-        F = np.zeros((n, 5, R))      # filtered x, v, p00, p01, p11
-        Pr = np.zeros((n, 5, R))     # predicted, the same
-        dts = np.zeros((n, R))
-    obs = np.isfinite(z)
-
-    def col(a):                      # a per-column array against the lanes
-        return a[:, None] if grid else a
+        XP, XF = np.empty((n, 2, 2) + shape), np.empty((n, 2, 2) + shape)
+        PP, PF = np.empty((n, 3) + shape), np.empty((n, 3) + shape)
+    ll = np.zeros(shape)
+    block = 32
+    SB = np.empty((block,) + shape)              # a block's measurement, then innovation variances
+    EB = np.empty((block, 2) + shape)            # ... its innovations
+    QB = np.empty((block, 3) + q.shape)          # ... and process noise terms (per model)
     for k in range(n):
-        dt = np.where(started, t[k] - last_t, 0.0)
-        dt2, dt3 = dt * dt, dt * dt * dt
-        if grid and R and (dt == dt[0]).all():
-            # one step for every lane (the usual case): the process-noise terms are computed
-            # once per model instead of once per lane (the same values)
-            dtc, dt2c, dt3c = dt[0], dt2[0], dt3[0]
-        else:
-            dtc, dt2c, dt3c = col(dt), col(dt2), col(dt3)
-        # predict (only lanes already started move; others stay zero)
-        x = x + dtc * v
-        n00 = p00 + 2 * dtc * p01 + dt2c * p11 + qq * dt3c / 3
-        n01 = p01 + dtc * p11 + qq * dt2c / 2
-        n11 = p11 + qq * dtc
-        p00, p01, p11 = n00, n01, n11
+        b = k % block
+        if b == 0:
+            kb = min(k + block, n)
+            np.multiply(r_upd[k:kb, :, None], s2, out=SB[:kb - k])
+            d = dt[k:kb, None, None]
+            QB[:kb - k] = np.stack([q * (d * d * d) / 3, q * (d * d) / 2, q * d], axis=1)
+        pos += dt[k] * vel
+        P[:2] += dt_pair[k] * P[1:]
+        p00 += dt[k] * dt[k] * p11
+        P += QB[b]
         if keep:
-            Pr[k] = (x, v, p00, p01, p11)
-            dts[k] = dt
-        o = obs[k]
-        upd = o & started
-        if upd.all():
-            # every lane measured (the usual frame): the masked update below without its masks
-            rk = col(r[k]) * scale2[None, :] if grid else r[k]
-            S = p00 + rk
-            innov = col(z[k]) - x
-            ll += -0.5 * (np.log(2 * np.pi * S) + innov * innov / S)
-            k0 = p00 / S
-            k1 = p01 / S
-            x = x + k0 * innov
-            v = v + k1 * innov
-            p00, p01, p11 = p00 - k0 * p00, p01 - k0 * p01, p11 - k1 * p01
-        elif upd.any():
-            u = col(upd)
-            zk = np.where(upd, z[k], 0.0)
-            rk = col(r[k]) * scale2[None, :] if grid else r[k]
-            S = p00 + rk
-            innov = col(zk) - x
-            ll += np.where(u, -0.5 * (np.log(2 * np.pi * S) + innov * innov / S), 0.0)
-            k0 = np.where(u, p00 / S, 0.0)
-            k1 = np.where(u, p01 / S, 0.0)
-            x = x + k0 * innov
-            v = v + k1 * innov
-            p00, p01, p11 = p00 - k0 * p00, p01 - k0 * p01, p11 - k1 * p01
-        new = o & ~started
-        if new.any():
-            # a diffuse start: position from the first measurement, velocity unknown
-            u = col(new)
-            x = np.where(u, col(z[k]), x)
-            v = np.where(u, 0.0, v)
-            p00 = np.where(u, col(r[k]) * scale2[None, :] if grid else r[k], p00)
-            p01 = np.where(u, 0.0, p01)
-            p11 = np.where(u, 1e6, p11)
-            started |= new
-        last_t = np.where(started, t[k], last_t)
+            XP[k], PP[k] = X, P
+        S = np.add(SB[b], p00, out=SB[b])
+        K = P[:2] / S                                            # gains of position, velocity
+        e = np.subtract(z_upd[k], pos, out=EB[b])
+        X += K[:, None] * e
+        p11 -= K[1] * p01
+        P[:2] -= K[0] * P[:2]
+        if k in starts:
+            c = starts[k]
+            pos[:, c] = z[k, c].T[:, :, None]
+            vel[:, c] = 0.0
+            p00[c] = r[k, c][:, None] * s2[c]
+            p01[c] = 0.0
+            p11[c] = 1e6
         if keep:
-            F[k] = (x, v, p00, p01, p11)
-    return (ll, F, Pr, dts) if keep else (ll,)
+            XF[k], PF[k] = X, P
+        elif b == block - 1 or k == n - 1:
+            ll += _block_loglik(SB[:b + 1], EB[:b + 1], upd[k - b:k + 1, :, None])
+    if keep:
+        return dt, XF[..., 0], XP[..., 0], PF[..., 0], PP[..., 0]
+    return ll
 
 
-def _rts(F: np.ndarray, Pr: np.ndarray, dts: np.ndarray):
-    """Rauch-Tung-Striebel backward pass; returns smoothed position and its variance."""
-    n = F.shape[0]
-    xs = F[:, 0].copy()
-    vs = F[:, 1].copy()
-    s00 = F[:, 2].copy()
-    s01 = F[:, 3].copy()
-    s11 = F[:, 4].copy()
-    for k in range(n - 2, -1, -1):
-        dt = dts[k + 1]
-        f00, f01, f11 = F[k, 2], F[k, 3], F[k, 4]
-        # P_f F^T, F = [[1, dt], [0, 1]]
-        a00, a01 = f00 + dt * f01, f01
-        a10, a11 = f01 + dt * f11, f11
-        q00, q01, q11 = Pr[k + 1, 2], Pr[k + 1, 3], Pr[k + 1, 4]
-        det = q00 * q11 - q01 * q01
-        ok = det > 0
-        det = np.where(ok, det, 1.0)
-        i00, i01, i11 = q11 / det, -q01 / det, q00 / det
-        c00, c01 = a00 * i00 + a01 * i01, a00 * i01 + a01 * i11
-        c10, c11 = a10 * i00 + a11 * i01, a10 * i01 + a11 * i11
-        c00, c01, c10, c11 = (np.where(ok, c, 0.0) for c in (c00, c01, c10, c11))
-        dx, dv = xs[k + 1] - Pr[k + 1, 0], vs[k + 1] - Pr[k + 1, 1]
-        xs[k] = F[k, 0] + c00 * dx + c01 * dv
-        vs[k] = F[k, 1] + c10 * dx + c11 * dv
-        d00, d01, d11 = s00[k + 1] - q00, s01[k + 1] - q01, s11[k + 1] - q11
-        # C D C^T
-        e00 = c00 * (c00 * d00 + c01 * d01) + c01 * (c00 * d01 + c01 * d11)
-        e01 = c00 * (c10 * d00 + c11 * d01) + c01 * (c10 * d01 + c11 * d11)
-        e11 = c10 * (c10 * d00 + c11 * d01) + c11 * (c10 * d01 + c11 * d11)
-        s00[k], s01[k], s11[k] = f00 + e00, f01 + e01, f11 + e11
-    return xs, s00
+def _rts(dt: np.ndarray, XF: np.ndarray, XP: np.ndarray, PF: np.ndarray, PP: np.ndarray):
+    r"""Rauch-Tung-Striebel backward pass over the states of :func:`_filter` with ``keep``
+    (one model per track): smoothed positions (n, m, 2) and their per-axis variance (n, m).
+
+    ``XF``, ``XP`` (n, 2, 2, m) filtered and predicted (position, velocity) x axis, ``PF``,
+    ``PP`` (n, 3, m) their (p00, p01, p11).  The smoother gain
+    :math:`C_k = P_{f,k} F_{k+1}^T P_{p,k+1}^{-1}` (0 where the prediction is singular) depends
+    on the filter's covariances only and is computed for every step at once; the backward
+    recursion :math:`x_{s,k} = x_{f,k} + C_k (x_{s,k+1} - x_{p,k+1})`,
+    :math:`P_{s,k} = P_{f,k} + C_k (P_{s,k+1} - P_{p,k+1}) C_k^T` then takes a few operations
+    per step, for every track and both axes.  Its terms are grouped as written out for one
+    lane (a track's first smoothed variance, under a velocity variance of 1e6, is ill-conditioned
+    and would show another grouping's rounding).
+    """
+    d = dt[1:, None]
+    f00, f01, f11 = PF[:-1, 0], PF[:-1, 1], PF[:-1, 2]
+    q00, q01, q11 = PP[1:, 0], PP[1:, 1], PP[1:, 2]
+    a00, a01, a10, a11 = f00 + d * f01, f01, f01 + d * f11, f11        # P_f F^T
+    det = q00 * q11 - q01 * q01
+    ok = det > 0
+    det = np.where(ok, det, 1.0)
+    i00, i01, i11 = q11 / det, -q01 / det, q00 / det
+    c00, c01 = a00 * i00 + a01 * i01, a00 * i01 + a01 * i11
+    c10, c11 = a10 * i00 + a11 * i01, a10 * i01 + a11 * i11
+    c00, c01, c10, c11 = (np.where(ok, c, 0.0) for c in (c00, c01, c10, c11))
+    col0 = np.stack([c00, c10, c10], axis=1)          # C's columns at rows (0, 1, 1) ...
+    col1 = np.stack([c01, c11, c11], axis=1)
+    row0 = np.stack([c00, c00, c10], axis=1)          # ... and its rows 0, 0, 1
+    row1 = np.stack([c01, c01, c11], axis=1)
+    xs, ps = XF.copy(), PF.copy()
+    for k in range(len(dt) - 2, -1, -1):
+        dx = xs[k + 1] - XP[k + 1]                     # (position, velocity) x axis
+        xs[k] += col0[k, :2, None] * dx[0]
+        xs[k] += col1[k, :2, None] * dx[1]
+        dp = ps[k + 1] - PP[k + 1]                     # (p00, p01, p11)
+        v0 = col0[k] * dp[0] + col1[k] * dp[1]         # D C^T at (0, 0), (0, 1), (0, 1)
+        v1 = col0[k] * dp[1] + col1[k] * dp[2]         # ... (1, 0), (1, 1), (1, 1)
+        ps[k] += row0[k] * v0 + row1[k] * v1           # C D C^T at (0, 0), (0, 1), (1, 1)
+    return xs[:, 0].transpose(0, 2, 1), ps[:, 0]
 
 
 def _spike(times: np.ndarray, Zu: np.ndarray, sd: np.ndarray, k_sigma: float = 3.0) -> np.ndarray:
@@ -210,61 +230,74 @@ def _spike(times: np.ndarray, Zu: np.ndarray, sd: np.ndarray, k_sigma: float = 3
     extrapolation's sd (sqrt(1 + (1 + r)^2 + r^2) sd, 2.45 sd at a constant frame rate).
     A detection without two on each side (a track's first two and last two) is never a
     spike: a marker that starts or stops moving there looks the same."""
-    n, m = Zu.shape[:2]
-    off = np.ones((n, m), bool)
-    for step in (1, -1):
-        e = np.zeros((n, m))
-        for j in range(m):
-            idx = np.flatnonzero(np.isfinite(Zu[:, j, 0]))
-            if step == -1:
-                idx = idx[::-1]
-            if len(idx) < 3:
-                continue
-            # every consecutive triple (a, b, k) of the marker's detections at once
-            a, b, k = idx[:-2], idx[1:-1], idx[2:]
-            r = (times[k] - times[b]) / (times[b] - times[a])
-            pred = Zu[b, j] + r[:, None] * (Zu[b, j] - Zu[a, j])
-            s = sd[k, j] * np.sqrt(1.0 + (1 + r) ** 2 + r ** 2)
-            e[k, j] = np.max(np.abs(Zu[k, j] - pred), axis=1) / s
-        off &= e > k_sigma
-    return off
+    def off(times, Zu, sd):
+        # every detection against the line through the two detections of its track before it
+        n, m = sd.shape
+        seen = np.isfinite(Zu[:, :, 0])
+        upto = np.maximum.accumulate(np.where(seen, np.arange(n)[:, None], -1), axis=0)
+        b = np.vstack([np.full((1, m), -1), upto[:-1]])                  # the last detection before
+        a = np.where(b >= 0, np.take_along_axis(b, np.maximum(b, 0), axis=0), -1)   # and the one before it
+        cells = np.flatnonzero(seen & (a >= 0))                          # (frame, track), flat
+        k, j = np.divmod(cells, m)
+        a, b = a.ravel()[cells], b.ravel()[cells]
+        r = (times[k] - times[b]) / (times[b] - times[a])
+        dev = []
+        for axis in (0, 1):
+            z = Zu[:, :, axis].ravel()
+            zb = z[b * m + j]
+            dev.append(np.abs(z[cells] - (zb + r * (zb - z[a * m + j]))))
+        e = np.zeros(n * m)
+        e[cells] = np.maximum(*dev) / (sd.ravel()[cells] * np.sqrt(1.0 + (1 + r) ** 2 + r ** 2))
+        return e.reshape(n, m) > k_sigma
+    return off(times, Zu, sd) & off(times[::-1], Zu[::-1], sd[::-1])[::-1]
 
 
 def _fit_view(times, Zu, SDu, qs, scales):
-    """Maximum-likelihood (q, scale) per marker, then the RTS smoother with them.
+    """Maximum-likelihood (q, scale) per track, then the RTS smoother with them.
 
     The grid ``qs`` x ``scales`` is searched coarse to fine: every 4th q and every 2nd scale
-    first, then the full grid's points within a coarse step of each marker's best (markers
-    sharing a best share the fine pass).  ``Zu`` (n, m, 2) positions (NaN: none), ``SDu``
-    (n, m) raw per-axis sd.  Returns ``q``, ``scale`` (m,), smoothed positions and variances
-    (n, 2 m; lane 2 marker + axis)."""
-    n, m = Zu.shape[:2]
-    Z2 = Zu.reshape(n, 2 * m)
-    R2 = np.repeat(SDu, 2, axis=1) ** 2
-
-    def loglik(markers, iq, js):
-        Q, S = (a.ravel() for a in np.meshgrid(qs[iq], scales[js], indexing="ij"))
-        cols = np.stack([2 * markers, 2 * markers + 1], axis=1).ravel()
-        # every (marker, axis) under every model (q, scale) at once: lanes (2 m, G)
-        (ll,) = _filter(times, Z2[:, cols], R2[:, cols], Q, scale2=S ** 2)
-        return ll.reshape(len(markers), 2, -1).sum(axis=1), Q, S      # both axes
-
+    first, then the full grid's points within a coarse step of each track's best.  Each pass
+    filters every track under every one of its models at once (:func:`_filter`); in the fine
+    pass each track has its own window, clipped at the grid's edges (a clipped window repeats
+    its edge's models, next to them in the search order: the choice is the same).  The tracks
+    are independent: a track's result does not depend on the others fitted with it.  ``Zu``
+    (n, m, 2) positions (NaN: none), ``SDu`` (n, m) raw per-axis sd.  Returns ``q``,
+    ``scale`` (m,), smoothed positions (n, m, 2) and their per-axis variance (n, m)."""
+    m = Zu.shape[1]
+    r = SDu ** 2
     cq, cs = np.arange(0, len(qs), 4), np.arange(0, len(scales), 2)
-    ll, _, _ = loglik(np.arange(m), cq, cs)
+    Q, S = (a.ravel() for a in np.meshgrid(qs[cq], scales[cs], indexing="ij"))
+    ll = _filter(times, Zu, r, Q[None, :], (S ** 2)[None, :])
     b = np.argmax(ll, axis=1)
     bq, bs = cq[b // len(cs)], cs[b % len(cs)]
-    q_best, s_best = np.empty(m), np.empty(m)
-    for key in sorted(set(zip(bq.tolist(), bs.tolist()))):
-        mk = np.flatnonzero((bq == key[0]) & (bs == key[1]))
-        fq = np.arange(max(0, key[0] - 3), min(len(qs), key[0] + 4))
-        fs = np.arange(max(0, key[1] - 2), min(len(scales), key[1] + 3))
-        ll, Q, S = loglik(mk, fq, fs)
-        b2 = np.argmax(ll, axis=1)
-        q_best[mk], s_best[mk] = Q[b2], S[b2]
-    r2 = np.repeat(SDu ** 2 * s_best ** 2, 2, axis=1)
-    _, F, Pr, dts = _filter(times, Z2, r2, np.repeat(q_best, 2), keep=True)
-    xs, var = _rts(F, Pr, dts)
+    iq, js = np.broadcast_arrays(np.clip(bq[:, None, None] + np.arange(-3, 4)[None, :, None], 0, len(qs) - 1),
+                                 np.clip(bs[:, None, None] + np.arange(-2, 3)[None, None, :], 0, len(scales) - 1))
+    Q, S = qs[iq].reshape(m, -1), scales[js].reshape(m, -1)      # (m, 35), q-major as in the coarse pass
+    b = np.argmax(_filter(times, Zu, r, Q, S ** 2), axis=1)
+    q_best, s_best = Q[np.arange(m), b], S[np.arange(m), b]
+    xs, var = _rts(*_filter(times, Zu, r, q_best[:, None], (s_best ** 2)[:, None], keep=True))
     return q_best, s_best, xs, var
+
+
+def _fit_views(times, Zs, SDs, qs, scales):
+    """:func:`_fit_view` of the tracks of several views on one clock at once (lanes of one
+    filter, so that each step's operations serve them all); the results split per view."""
+    cuts = np.cumsum([Z.shape[1] for Z in Zs])[:-1]
+    q, s, xs, var = _fit_view(times, np.concatenate(Zs, axis=1), np.concatenate(SDs, axis=1), qs, scales)
+    return list(zip(np.split(q, cuts), np.split(s, cuts), np.split(xs, cuts, axis=1), np.split(var, cuts, axis=1)))
+
+
+def _outliers(times, Zu, SDu, xs, outlier_sigma):
+    """(n, m) True at a detection far off its smoothed track (a bad centre) and a spike.
+
+    Far off is judged on a robust scale of the residuals (the likelihood's scale grows to take
+    in an outlier); a spike is off the straight-line extrapolation from both sides (a sudden
+    turn, such as the indentor's reversal, lies on both and is kept)."""
+    resid = np.abs(Zu - xs) / SDu[:, :, None]
+    fin = np.where(np.isfinite(resid), resid, np.nan)
+    robust = np.maximum(1.4826 * np.nanmedian(fin.transpose(1, 0, 2).reshape(Zu.shape[1], -1), axis=1), 1.0)
+    outlier = np.nanmax(np.where(np.isfinite(fin), fin, 0.0), axis=2) > outlier_sigma * robust[None, :]
+    return outlier & _spike(times, Zu, SDu * robust[None, :])
 
 
 def smooth_tracks(table: pd.DataFrame, *, log_q_grid=LOG_Q_GRID, scale_grid=SCALE_GRID,
@@ -286,13 +319,15 @@ def smooth_tracks(table: pd.DataFrame, *, log_q_grid=LOG_Q_GRID, scale_grid=SCAL
     if missing:
         raise ValueError(f"track table lacks columns {sorted(missing)}")
     out = table.copy()
-    for c in ("sd_px", "x_px_smooth", "y_px_smooth", "sd_px_smooth"):
-        out[c] = np.nan
-    out["smooth_outlier"] = False
+    # the new columns, by row position; written into the table at the end
+    new = {c: np.full(len(out), np.nan) for c in ("sd_px", "x_px_smooth", "y_px_smooth", "sd_px_smooth")}
+    new["smooth_outlier"] = np.zeros(len(out), bool)
     models: list[TrackSmoothing] = []
     qs = 10.0 ** np.asarray(log_q_grid, float)
     scales = np.asarray(scale_grid, float)
-    for view, vt in out.groupby("view", sort=False):
+    views = out.groupby("view", sort=False)
+    fits = []                       # per view with tracks to smooth: its arrays and, below, its fit
+    for view, vt in views:
         frames = np.sort(vt["frame"].unique())
         times = vt.groupby("frame")["time_s"].first().reindex(frames).to_numpy(float)
         if not np.all(np.isfinite(times)) or np.any(np.diff(times) <= 0):
@@ -301,11 +336,8 @@ def smooth_tracks(table: pd.DataFrame, *, log_q_grid=LOG_Q_GRID, scale_grid=SCAL
         n, M = len(frames), len(markers)
         Z = np.full((n, 2, M), np.nan)
         SD = np.full((n, M), np.nan)
-        fidx = {f: i for i, f in enumerate(frames)}
-        midx = {m: j for j, m in enumerate(markers)}
-        rows = vt.index.to_numpy()
-        fi = vt["frame"].map(fidx).to_numpy()
-        mi = vt["marker"].map(midx).to_numpy()
+        fi = np.searchsorted(frames, vt["frame"].to_numpy())
+        mi = pd.Index(markers).get_indexer(vt["marker"])
         sd = centre_sd_px(vt["snr"].to_numpy(float))
         found = np.isfinite(vt["x_px"].to_numpy(float)) & np.isfinite(vt["y_px"].to_numpy(float)) & np.isfinite(sd) & (sd > 0)
         Z[fi[found], 0, mi[found]] = vt["x_px"].to_numpy(float)[found]
@@ -315,40 +347,53 @@ def smooth_tracks(table: pd.DataFrame, *, log_q_grid=LOG_Q_GRID, scale_grid=SCAL
         use = np.flatnonzero(n_found >= min_points)
         if use.size == 0:
             continue
-        Zu = Z[:, :, use].transpose(0, 2, 1)                # (n, m, 2): lane = 2 * marker + axis
-        SDu = np.where(np.isfinite(SD[:, use]), SD[:, use], 1.0)
-        q_best, s_best, xs, var = _fit_view(times, Zu, SDu, qs, scales)
-        # a detection far off its smoothed track (a bad centre) is left out and the track refitted
-        # (judged on a robust scale of the residuals: the likelihood's scale grows to take in an outlier)
-        resid = np.abs(Zu - xs.reshape(n, use.size, 2)) / SDu[:, :, None]
-        fin = np.where(np.isfinite(resid), resid, np.nan)
-        robust = np.maximum(1.4826 * np.nanmedian(fin.transpose(1, 0, 2).reshape(use.size, -1), axis=1), 1.0)
-        outlier = np.nanmax(np.where(np.isfinite(fin), fin, 0.0), axis=2) > outlier_sigma * robust[None, :]
-        # ... and only a spike: off the straight-line extrapolation from both sides (a sudden turn,
-        # such as the indentor's reversal, lies on both and is kept)
-        outlier &= _spike(times, Zu, SDu * robust[None, :])
-        if outlier.any():
-            Zu = np.where(outlier[:, :, None], np.nan, Zu)
-            q_best, s_best, xs, var = _fit_view(times, Zu, SDu, qs, scales)
-        out_rows = np.zeros(len(vt), bool)
-        for a, j in enumerate(use):
-            seen = np.isfinite(Zu[:, a, 0])
-            if not seen.any():
-                continue
-            first, last = np.flatnonzero(seen)[[0, -1]]
-            sel = (mi == j) & found & (fi >= first) & (fi <= last)
-            k = fi[sel]
-            r_idx = rows[sel]
-            out.loc[r_idx, "sd_px"] = SD[k, j] * s_best[a]
-            out.loc[r_idx, "x_px_smooth"] = xs[k, 2 * a]
-            out.loc[r_idx, "y_px_smooth"] = xs[k, 2 * a + 1]
-            out.loc[r_idx, "sd_px_smooth"] = np.sqrt(0.5 * (var[k, 2 * a] + var[k, 2 * a + 1]))
-            out_rows |= (mi == j) & found & outlier[fi, a]
-            models.append(TrackSmoothing(
-                view=str(view), marker=str(markers[j]), n_points=int(seen.sum()),
-                q_px2_per_s3=float(q_best[a]), error_scale=float(s_best[a]),
-                raw_sd_px=float(np.median(SD[seen, j]) * s_best[a]),
-                smooth_sd_px=float(np.median(np.sqrt(0.5 * (var[seen, 2 * a] + var[seen, 2 * a + 1])))),
-                n_outliers=int(outlier[:, a].sum())))
-        out.loc[rows[out_rows], "smooth_outlier"] = True
+        fits.append(SimpleNamespace(
+            view=view, pos=views.indices[view], times=times, markers=markers, fi=fi, mi=mi, found=found, SD=SD,
+            use=use, Zu=Z[:, :, use].transpose(0, 2, 1),          # (n, m, 2): track, axis
+            SDu=np.where(np.isfinite(SD[:, use]), SD[:, use], 1.0)))
+    # views on one clock (a synchronised stereo pair) are fitted together
+    clocks: dict[bytes, list] = {}
+    for f in fits:
+        clocks.setdefault(f.times.tobytes(), []).append(f)
+    for group in clocks.values():
+        times = group[0].times
+        for f, fit in zip(group, _fit_views(times, [f.Zu for f in group], [f.SDu for f in group], qs, scales)):
+            f.q, f.s, f.xs, f.var = fit
+            # a bad centre is left out and its track refitted
+            f.outlier = _outliers(times, f.Zu, f.SDu, f.xs, outlier_sigma)
+            f.Zu = np.where(f.outlier[:, :, None], np.nan, f.Zu)
+            f.redo = np.flatnonzero(f.outlier.any(axis=0))
+        # tracks are fitted independently: only those that lost a detection change
+        redo = [f for f in group if f.redo.size]
+        if redo:
+            for f, fit in zip(redo, _fit_views(times, [f.Zu[:, f.redo] for f in redo],
+                                               [f.SDu[:, f.redo] for f in redo], qs, scales)):
+                f.q[f.redo], f.s[f.redo], f.xs[:, f.redo], f.var[:, f.redo] = fit
+    for f in fits:
+        seen = np.isfinite(f.Zu[:, :, 0])
+        has = seen.any(axis=0)
+        first = seen.argmax(axis=0)
+        last = len(f.times) - 1 - seen[::-1].argmax(axis=0)
+        a_of = np.full(len(f.markers), -1)
+        a_of[f.use] = np.arange(f.use.size)
+        a = a_of[f.mi]
+        rel = f.found & (a >= 0)
+        rel[rel] = has[a[rel]]                      # rows of the smoothed tracks
+        new["smooth_outlier"][f.pos[rel]] = f.outlier[f.fi[rel], a[rel]]
+        rel[rel] = (f.fi[rel] >= first[a[rel]]) & (f.fi[rel] <= last[a[rel]])
+        k, j, a = f.fi[rel], f.mi[rel], a[rel]
+        new["sd_px"][f.pos[rel]] = f.SD[k, j] * f.s[a]
+        new["x_px_smooth"][f.pos[rel]] = f.xs[k, a, 0]
+        new["y_px_smooth"][f.pos[rel]] = f.xs[k, a, 1]
+        new["sd_px_smooth"][f.pos[rel]] = np.sqrt(f.var[k, a])
+        for a, j in enumerate(f.use):
+            if has[a]:
+                models.append(TrackSmoothing(
+                    view=str(f.view), marker=str(f.markers[j]), n_points=int(seen[:, a].sum()),
+                    q_px2_per_s3=float(f.q[a]), error_scale=float(f.s[a]),
+                    raw_sd_px=float(np.median(f.SD[seen[:, a], j]) * f.s[a]),
+                    smooth_sd_px=float(np.median(np.sqrt(f.var[seen[:, a], a]))),
+                    n_outliers=int(f.outlier[:, a].sum())))
+    for c, v in new.items():
+        out[c] = v
     return out, models
