@@ -36,6 +36,7 @@ reports the ray gap and reprojection error before and after each step.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from dataclasses import dataclass, field, replace
@@ -44,7 +45,7 @@ import numpy as np
 import pandas as pd
 
 from ..loop import Effect, LoopReport, run_loop
-from .triangulate import ViewGeometry, closest_point_on_ray, triangulate
+from .triangulate import ViewGeometry, _triangulate, closest_point_on_ray
 
 log = logging.getLogger(__name__)
 
@@ -83,29 +84,36 @@ class StereoData:
     suspect_b: np.ndarray
 
 
-def _view_arrays(table: pd.DataFrame, view: str, markers: list[str], frames: np.ndarray):
-    t = table[table["view"] == view]
+def _view_arrays(cols: dict, markers: list[str], frames: np.ndarray):
+    """One view's positions (F, M, 2), frame times (F,) and suspect flags (F, M) from its rows
+    (``cols``: the table's columns as arrays)."""
     F, M = len(frames), len(markers)
     xy = np.full((F, M, 2), np.nan)
     times = np.full(F, np.nan)
-    status = np.full((F, M), "", dtype=object)
-    fpos = {f: i for i, f in enumerate(frames)}
-    mpos = {m: j for j, m in enumerate(markers)}
-    for r in t.itertuples(index=False):
-        i, j = fpos.get(r.frame), mpos.get(r.marker)
-        if i is None or j is None:
-            continue
-        times[i] = r.time_s
-        status[i, j] = r.status
-        if r.found:
-            xy[i, j] = (r.x_px, r.y_px)
+    partial = np.zeros((F, M), bool)
+    # rows -> (frame, marker) cells, all at once; where a cell (or a frame's time) has more
+    # than one row, the last one counts (and, for the position, the last found one)
+    i = pd.Index(frames).get_indexer(cols["frame"])
+    j = pd.Index(markers).get_indexer(cols["marker"])
+    keep = (i >= 0) & (j >= 0)
+    i, j = i[keep], j[keep]
+    cell = i * M + j
+    last_i = len(i) - 1 - np.unique(i[::-1], return_index=True)[1]
+    times[i[last_i]] = cols["time_s"][keep][last_i]
+    last = len(cell) - 1 - np.unique(cell[::-1], return_index=True)[1]
+    partial.ravel()[cell[last]] = cols["partial"][keep][last]
+    found = cols["found"][keep]
+    if found.any():
+        cf = cell[found]
+        lf = len(cf) - 1 - np.unique(cf[::-1], return_index=True)[1]
+        xy.reshape(-1, 2)[cf[lf]] = np.column_stack([cols["x_px"][keep][found][lf], cols["y_px"][keep][found][lf]])
     found = np.isfinite(xy).all(axis=2)
     # the frames next to a change between found and lost: partly hidden there
     edge = np.zeros_like(found)
     ch = found[1:] != found[:-1]
     edge[1:] |= ch
     edge[:-1] |= ch
-    suspect = found & (edge | (status == "partial"))
+    suspect = found & (edge | partial)
     return xy, times, suspect
 
 
@@ -113,14 +121,21 @@ def stereo_data(table: pd.DataFrame, views: tuple[ViewGeometry, ViewGeometry]) -
     """Arrange a tidy 2-D table (``view, frame, time_s, marker, x_px, y_px, found, status``)
     for the two views: A's frames, the markers present in both views."""
     a, b = views[0].name, views[1].name
-    ma = list(dict.fromkeys(table.loc[table["view"] == a, "marker"]))
-    mb = set(table.loc[table["view"] == b, "marker"])
+    view = table["view"]
+    cols = {"frame": table["frame"].to_numpy(), "marker": table["marker"].to_numpy(),
+            "time_s": table["time_s"].to_numpy(dtype=float), "x_px": table["x_px"].to_numpy(dtype=float),
+            "y_px": table["y_px"].to_numpy(dtype=float),
+            "found": np.asarray(table["found"].to_numpy(), dtype=bool),
+            "partial": (table["status"] == "partial").to_numpy(dtype=bool)}
+    in_a, in_b = (view == a).to_numpy(), (view == b).to_numpy()
+    ma = list(pd.unique(cols["marker"][in_a]))            # in order of appearance
+    mb = set(pd.unique(cols["marker"][in_b]))
     markers = [m for m in ma if m in mb]
-    fa = np.sort(table.loc[table["view"] == a, "frame"].unique())
-    fb = np.sort(table.loc[table["view"] == b, "frame"].unique())
+    fa = np.sort(pd.unique(cols["frame"][in_a]))
+    fb = np.sort(pd.unique(cols["frame"][in_b]))
     frames = fa[np.isin(fa, fb)] if len(fb) else fa
-    xa, ta, sa = _view_arrays(table, a, markers, frames)
-    xb, tb, sb = _view_arrays(table, b, markers, frames)
+    xa, ta, sa = _view_arrays({k: v[in_a] for k, v in cols.items()}, markers, frames)
+    xb, tb, sb = _view_arrays({k: v[in_b] for k, v in cols.items()}, markers, frames)
     return StereoData(views, frames, markers, xa, xb, ta, tb, sa, sb)
 
 
@@ -152,43 +167,172 @@ class StereoFit:
         return float(np.sqrt(np.mean(p["reproj_err_px"] ** 2))) if len(p) else float("nan")
 
 
+def _runs(ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """First and one-past-last index of each run of consecutive True in ``ok`` (1-D)."""
+    e = np.flatnonzero(np.diff(np.r_[0, ok.astype(np.int8), 0]))
+    return e[::2], e[1::2]
+
+
+def _pchip_slopes(h: np.ndarray, m: np.ndarray, first: np.ndarray, last: np.ndarray, two: np.ndarray) -> np.ndarray:
+    """PCHIP's derivatives (F, ...) at samples whose intervals have widths ``h`` (F-1,) and
+    slopes ``m`` (F-1, ...), as :class:`scipy.interpolate.PchipInterpolator` finds them for each
+    run (the same operations): the weighted harmonic mean of the slopes inside a run (zero
+    where they change sign or one is zero), the shape-preserving three-point estimate at
+    its ends, the slope itself in a run of two samples.  ``first``, ``last``, ``two`` (F, ...)
+    mark each run's first and last samples and the runs of two."""
+    F = len(m) + 1
+    hb = h.reshape((-1,) + (1,) * (m.ndim - 1))
+    d = np.zeros((F,) + m.shape[1:])
+    if F < 3:
+        d[:-1] = np.where(two[:-1], m, 0.0)
+        d[1:] = np.where(two[1:], m, d[1:])
+        return d
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # inside: samples 1..F-2, slopes m[:-1] before and m[1:] after
+        w1 = 2 * hb[1:] + hb[:-1]
+        w2 = hb[1:] + 2 * hb[:-1]
+        whmean = (w1 / m[:-1] + w2 / m[1:]) / (w1 + w2)
+        cond = (np.sign(m[1:]) != np.sign(m[:-1])) | (m[1:] == 0) | (m[:-1] == 0)
+        d[1:-1] = np.where(cond, 0.0, 1.0 / whmean)
+
+        def edge(h0, h1, m0, m1):
+            e = ((2 * h0 + h1) * m0 - h0 * m1) / (h0 + h1)
+            mask = np.sign(e) != np.sign(m0)
+            mask2 = (np.sign(m0) != np.sign(m1)) & (np.abs(e) > 3. * np.abs(m0))
+            e = np.where(mask, 0., e)
+            return np.where(~mask & mask2, 3. * m0, e)
+
+        # a run's first sample i: intervals i, i+1; its last sample i: intervals i-1, i-2
+        d[:-2] = np.where(first[:-2], edge(hb[:-1], hb[1:], m[:-1], m[1:]), d[:-2])
+        d[2:] = np.where(last[2:], edge(hb[1:], hb[:-1], m[1:], m[:-1]), d[2:])
+    d[:-1] = np.where(two[:-1] & first[:-1], m, d[:-1])
+    d[1:] = np.where(two[1:] & last[1:], m, d[1:])
+    return d
+
+
 class _Interp:
     """PCHIP through each marker's contiguous runs of found frames, built once and evaluated
-    at any times (NaN outside a run: gaps are not bridged).  Markers whose runs span the
-    same frames share one interpolator (PCHIP treats the columns independently; one call
-    instead of one per marker)."""
+    at any times (NaN outside a run: gaps are not bridged).
+
+    The cubics are built and evaluated here for every marker and run at once, with the same
+    operations :class:`scipy.interpolate.PchipInterpolator` (derivatives, Hermite
+    coefficients) and :class:`~scipy.interpolate.PPoly` (interval by binary search, the local
+    power series summed in the same order) apply to each run: the same numbers without one
+    interpolator per run.  That needs the finite source times in increasing order; otherwise
+    each run gets its own ``PchipInterpolator`` (markers whose runs span the same frames
+    share one).
+    """
 
     def __init__(self, t_src: np.ndarray, y: np.ndarray):
-        from scipy.interpolate import PchipInterpolator
         self.shape = y.shape[1:]
+        self.t_src = t_src = np.asarray(t_src, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        F, M = y.shape[:2]
+        tfin = np.isfinite(t_src)
+        ok = np.isfinite(y).reshape(F, M, -1).all(axis=2) & tfin[:, None]
         spans: dict[tuple[int, int], list[int]] = {}
-        for j in range(y.shape[1]):
-            ok = np.isfinite(y[:, j]).all(axis=1) & np.isfinite(t_src)
-            run_id = np.cumsum(np.r_[True, ~(ok[1:] & ok[:-1])])
-            for r in np.unique(run_id[ok]):
-                idx = np.flatnonzero((run_id == r) & ok)
-                if len(idx) >= 2:
-                    spans.setdefault((int(idx[0]), int(idx[-1])), []).append(j)
-        self.runs: list[tuple[np.ndarray, float, float, object]] = []
-        for (i0, i1), cols in spans.items():
-            ts = t_src[i0:i1 + 1]
-            cols = np.asarray(cols)
-            self.runs.append((cols, ts[0], ts[-1], PchipInterpolator(ts, y[i0:i1 + 1][:, cols], axis=0)))
+        first = np.zeros((F, M), bool)
+        last = np.zeros((F, M), bool)
+        two = np.zeros((F, M), bool)
+        for j in range(M):
+            for i0, i1 in zip(*_runs(ok[:, j])):
+                if i1 - i0 >= 2:
+                    spans.setdefault((int(i0), int(i1) - 1), []).append(j)
+                    first[i0, j] = last[i1 - 1, j] = True
+                    two[i0:i1, j] = i1 - i0 == 2
+                else:
+                    ok[i0, j] = False                 # a single sample: no interpolant
+        # (cols, first time, last time) of each run, markers with the same frames together
+        self.runs: list[tuple[np.ndarray, float, float]] = [
+            (np.asarray(cols), t_src[i0], t_src[i1]) for (i0, i1), cols in spans.items()]
+        self._fast = bool(np.all(np.diff(t_src[tfin]) > 0))
+        self._pchip: list = []
+        if not self._fast:
+            from scipy.interpolate import PchipInterpolator
+            self._pchip = [PchipInterpolator(t_src[i0:i1 + 1], y[i0:i1 + 1][:, cols], axis=0)
+                           for (i0, i1), cols in spans.items()]
+            return
+        # interval i (samples i, i+1) of marker j is a piece when both samples are in one run
+        self._valid = ok[1:] & ok[:-1]
+        tail = (1,) * (y.ndim - 2)
+        h = t_src[1:] - t_src[:-1]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            m = (y[1:] - y[:-1]) / h.reshape((-1, 1) + tail)
+            d = _pchip_slopes(h, m, first.reshape(first.shape + tail), last.reshape(last.shape + tail),
+                              two.reshape(two.shape + tail))
+            hr = h.reshape((-1, 1) + tail)
+            t = (d[:-1] + d[1:] - 2 * m) / hr
+            # the local power series of each piece, highest power first (PPoly's c): for each
+            # power and each component, entry i * M + j is interval i of marker j
+            n_tail = int(np.prod(self.shape[1:], dtype=int))
+            self._coef = [np.ascontiguousarray(np.moveaxis(c.reshape(max(F - 1, 0) * M, n_tail), 1, 0))
+                          for c in (t / hr, (m - d[:-1]) / hr - t, d[:-1], y[:-1])]
+        # t_src with its gaps filled by the time before (-inf at the start): non-decreasing,
+        # so one binary search finds every point's interval
+        self._t_ff = np.maximum.accumulate(np.where(tfin, t_src, -np.inf)) if F else t_src
 
     def covers(self, t_lo: np.ndarray, t_hi: np.ndarray) -> np.ndarray:
         """(F, M) bool: marker j has one run spanning [t_lo[i], t_hi[i]]."""
         out = np.zeros((len(t_lo), self.shape[0]), bool)
-        for cols, t0, t1, _ in self.runs:
+        for cols, t0, t1 in self.runs:
             out[:, cols] |= ((t_lo >= t0) & (t_hi <= t1))[:, None]
         return out
 
-    def __call__(self, t_query: np.ndarray) -> np.ndarray:
-        out = np.full((len(t_query),) + self.shape, np.nan)
-        for cols, t0, t1, f in self.runs:
-            q = (t_query >= t0) & (t_query <= t1)
-            if q.any():
-                out[np.ix_(q, cols)] = f(t_query[q])
+    def at_points(self, t: np.ndarray, cols: np.ndarray, at: np.ndarray | None = None) -> np.ndarray:
+        """Values (P, ...) of markers ``cols`` (P,) at times ``t`` (P,), or at ``t[at]`` where
+        ``at`` (P,) is given (a few times shared by many points): NaN outside their runs."""
+        P = len(cols)
+        out = np.full((P,) + self.shape[1:], np.nan)
+        F = len(self.t_src)
+        if not self._fast:
+            if at is not None:
+                t = t[at]
+            for (c, t0, t1), f in zip(self.runs, self._pchip):
+                q = np.flatnonzero((t >= t0) & (t <= t1) & np.isin(cols, c))
+                if len(q):
+                    out[q] = f(t[q])[np.arange(len(q)), np.searchsorted(c, cols[q])]
+            return out
+        if F < 2 or P == 0:
+            return out
+        g = np.searchsorted(self._t_ff, t, side="right") - 1
+        if at is not None:
+            t, g = t[at], g[at]
+        gc = np.clip(g, 0, F - 2)
+        hit = (g >= 0) & (g <= F - 2) & self._valid[gc, cols]
+        if not hit.all():
+            # exactly at a run's last sample: the end of its last interval
+            miss = np.flatnonzero(~hit)
+            g0 = np.searchsorted(self._t_ff, t[miss], side="left")
+            g0c = np.clip(g0, 1, F - 1)
+            end = (g0 >= 1) & (g0 <= F - 1) & (self.t_src[g0c] == t[miss]) & self._valid[g0c - 1, cols[miss]]
+            gc[miss] = np.where(end, g0c - 1, gc[miss])
+            hit[miss] = end
+            idx = np.flatnonzero(hit)
+            gc, t, cols = gc[idx], t[idx], cols[idx]
+        else:
+            idx = slice(None)
+        s = t - self.t_src[gc]
+        z2 = s * s
+        z3 = z2 * s
+        row = gc * self.shape[0] + cols
+        o = out.reshape(P, -1)
+        for k in range(o.shape[1]):
+            c0, c1, c2, c3 = (c[k][row] for c in self._coef)
+            # PPoly's sum: c_3 + c_2 s + c_1 s^2 + c_0 s^3, the powers by repeated products
+            o[idx, k] = ((c3 + c2 * s) + c1 * z2) + c0 * z3
         return out
+
+    def __call__(self, t_query: np.ndarray) -> np.ndarray:
+        if not self._fast:
+            out = np.full((len(t_query),) + self.shape, np.nan)
+            for (cols, t0, t1), f in zip(self.runs, self._pchip):
+                q = (t_query >= t0) & (t_query <= t1)
+                if q.any():
+                    out[np.ix_(q, cols)] = f(t_query[q])
+            return out
+        M = self.shape[0]
+        v = self.at_points(t_query, np.tile(np.arange(M), len(t_query)), at=np.repeat(np.arange(len(t_query)), M))
+        return v.reshape((len(t_query),) + self.shape)
 
 
 def _pchip_at(t_src: np.ndarray, y: np.ndarray, t_query: np.ndarray) -> np.ndarray:
@@ -228,21 +372,87 @@ def _gaps_from_dirs(da: np.ndarray, db: np.ndarray, base: np.ndarray) -> np.ndar
     return (n / np.where(nn > 0, nn, 1)) @ base
 
 
+@functools.lru_cache(maxsize=8)
+def _savgol2(window: int):
+    """The pieces of ``scipy.signal.savgol_filter(x, window, 2, mode="interp")``, computed as
+    it computes them: the convolution coefficients (``savgol_coeffs``), and the least-squares
+    solver and column scale of its edge fits (``polyfit`` of a quadratic to ``window``
+    samples, two columns at a time)."""
+    from scipy.linalg import lstsq
+    eps = np.finfo(np.float64).eps
+    half = window // 2
+    x = np.flip(np.arange(-half, window - half, dtype=np.float64))
+    A = x ** np.reshape(np.arange(3, dtype=np.float64), (-1, 1))
+    y = np.zeros(3, dtype=np.float64)
+    y[0] = 1.0
+    coeffs = lstsq(A, y, cond=eps * max(A.shape))[0]
+    xe = np.arange(0, window, dtype=np.float64)
+    lhs = xe[:, None] ** np.flip(np.arange(3, dtype=np.float64))[None, :]
+    scale = np.sqrt(np.sum(lhs * lhs, axis=0))
+    lhs /= scale
+    rcond = window * eps
+
+    # the edge fits' least squares (two columns: x, y), LAPACK's gelsd called as
+    # scipy.linalg.lstsq calls it, its workspace sized once
+    from scipy.linalg import get_lapack_funcs
+    gelsd, gelsd_lwork = get_lapack_funcs(("gelsd", "gelsd_lwork"), (lhs, np.zeros((window, 2))))
+    work, iwork, info = gelsd_lwork(window, 3, 2, rcond)
+    if info != 0:
+        raise ValueError(f"gelsd workspace query failed: {info}")
+    lwork, liwork = int(work.real), int(iwork.real)
+
+    def solve(b):
+        if b.shape != (window, 2):
+            return lstsq(lhs, b, cond=rcond)[0]
+        x, _, _, info = gelsd(lhs, b, lwork, liwork, rcond, False, False)
+        if info != 0:
+            return lstsq(lhs, b, cond=rcond)[0]           # let lstsq raise as it does
+        return x[:3]
+
+    return coeffs, solve, scale
+
+
 def _smooth_runs(x: np.ndarray, window: int) -> np.ndarray:
     """Savitzky-Golay (quadratic, ``window`` frames, zero phase) along each marker's
-    contiguous runs; shorter runs are left as they are."""
-    from scipy.signal import savgol_filter
+    contiguous runs; shorter runs are left as they are.
+
+    The same numbers as ``scipy.signal.savgol_filter(run, window, 2, axis=0)`` on each run
+    (mode ``interp``: the convolution inside, a quadratic fitted to the first and last
+    ``window`` samples at the ends), without importing :mod:`scipy.signal` (which imports
+    :mod:`scipy.stats`, most of a second of start-up): one convolution of all tracks (inside
+    a run it only sees that run's samples), then the two end fits of each run.
+    """
     out = x.copy()
     if window < 3:
         return out
     window |= 1
+    if len(x) < window:
+        return out
+    from scipy.ndimage import convolve1d
+    coeffs, solve, scale = _savgol2(window)
+    half = window // 2
+    conv = None
+    i_lo = np.arange(0, half, dtype=np.float64).reshape(-1, 1)
+    i_hi = np.arange(window - half, window, dtype=np.float64).reshape(-1, 1)
+
+    def edge(xw, i):
+        c = solve(xw)
+        c = (c.T / scale).T
+        y = np.zeros_like(i)
+        for j in range(c.shape[0]):
+            y = y * i + c[j, ...]
+        return y
+
     for j in range(x.shape[1]):
         ok = np.isfinite(x[:, j]).all(axis=1)
-        run_id = np.cumsum(np.r_[True, ~(ok[1:] & ok[:-1])])
-        for r in np.unique(run_id[ok]):
-            idx = np.flatnonzero((run_id == r) & ok)
-            if len(idx) >= window:
-                out[idx, j] = savgol_filter(x[idx, j], window, 2, axis=0)
+        for a, b in zip(*_runs(ok)):
+            if b - a < window:
+                continue
+            if conv is None:
+                conv = convolve1d(x, coeffs, axis=0, mode="constant")
+            out[a + half:b - half, j] = conv[a + half:b - half, j]
+            out[a:a + half, j] = edge(x[a:a + window, j], i_lo)
+            out[b - half:b, j] = edge(x[b - window:b, j], i_hi)
     return out
 
 
@@ -285,12 +495,24 @@ def estimate_time_offset(d: StereoData, max_offset_s: float | None = None, xb: n
     da = va.ray_directions(ua[use])
     base = vb.centre_mm - va.centre_mm
     Rb = vb.R
+    # B is interpolated at the used points only (each in the one run that covers it)
+    M = xb.shape[1]
+    fi, mi = np.divmod(np.flatnonzero(use), M)
+
+    a0, a1, a2 = da[:, 0].copy(), da[:, 1].copy(), da[:, 2].copy()
+    un = np.empty_like(da)
 
     def gaps(delta: float) -> np.ndarray:
-        mb = interp(d.ta - delta).reshape(-1, 2)[use]
+        mb = interp.at_points(d.ta - delta, mi, at=fi)
         db = mb @ Rb[:2] + Rb[2]                   # R^T (x, y, 1), as ray_directions
-        n = np.cross(da, db)
-        return (n / np.linalg.norm(n, axis=1, keepdims=True)) @ base
+        # (n / |n|) @ base, n = da x db: np.cross and np.linalg.norm's operations, by column
+        b0, b1, b2 = db[:, 0], db[:, 1], db[:, 2]
+        n0, n1, n2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+        nn = np.sqrt((n0 * n0 + n1 * n1) + n2 * n2)
+        np.divide(n0, nn, out=un[:, 0])
+        np.divide(n1, nn, out=un[:, 1])
+        np.divide(n2, nn, out=un[:, 2])
+        return un @ base
 
     def minimise(cost, lo, hi, grid_n):
         grid = np.linspace(lo, hi, grid_n)
@@ -332,17 +554,20 @@ def find_swaps(d: StereoData, xb: np.ndarray, min_ratio: float = 0.25, min_noise
     s = 1.4826 * np.median(np.abs(fin - np.median(fin)))
     s = max(s, 1e-9)
     out = []
-    for i in range(M):
-        for j in range(i + 1, M):
-            cur = np.abs(g[:, i]) + np.abs(g[:, j])
-            alt = (np.abs(_gaps_from_dirs(da[:, i], db[:, j], base))
-                   + np.abs(_gaps_from_dirs(da[:, j], db[:, i], base)))
-            hit = np.isfinite(cur) & np.isfinite(alt) & (alt < min_ratio * cur) & (cur > min_noise_factor * s)
-            if not hit.any():
-                continue
-            run_id = np.cumsum(np.r_[True, hit[1:] != hit[:-1]])
-            for r in np.unique(run_id[hit]):
-                idx = np.flatnonzero(run_id == r)
+    # every pair (i < j) at once, in chunks of pairs (memory): the gaps with B's names exchanged
+    I, J = np.triu_indices(M, 1)
+    step = max(1, 2_000_000 // max(F, 1))
+    for k0 in range(0, len(I), step):
+        i_, j_ = I[k0:k0 + step], J[k0:k0 + step]
+        cur_all = np.abs(g[:, i_]) + np.abs(g[:, j_])
+        alt_all = np.abs(_gaps_from_dirs(da[:, i_], db[:, j_], base)) + np.abs(_gaps_from_dirs(da[:, j_], db[:, i_], base))
+        hit_all = (np.isfinite(cur_all) & np.isfinite(alt_all) & (alt_all < min_ratio * cur_all)
+                   & (cur_all > min_noise_factor * s))
+        for k in np.flatnonzero(hit_all.any(axis=0)):
+            i, j = int(i_[k]), int(j_[k])
+            cur, alt, hit = cur_all[:, k], alt_all[:, k], hit_all[:, k]
+            for r0, r1 in zip(*_runs(hit)):
+                idx = np.arange(r0, r1)
                 out.append({"markers": [d.markers[i], d.markers[j]], "first_frame": int(d.frames[idx[0]]),
                             "last_frame": int(d.frames[idx[-1]]), "view": d.views[1].name,
                             "gap_before_mm": float(np.nanmean(cur[idx]) / 2),
@@ -396,7 +621,7 @@ def stereo_fit(d: StereoData, spec: StereoSpec, *, max_offset_s: float | None = 
         params["excluded_partly_hidden"] = int((drop & np.isfinite(xa).all(axis=2) & np.isfinite(xb).all(axis=2)).sum())
     ua = np.where(drop[..., None], np.nan, xa)
     ub = np.where(drop[..., None], np.nan, xb)
-    r = triangulate(d.views, ua.reshape(-1, 2), ub.reshape(-1, 2))
+    r = _triangulate(d.views, ua.reshape(-1, 2), ub.reshape(-1, 2))
     X = r["X_mm"].reshape(F, M, 3)
     g = r["ray_gap_signed_mm"].reshape(F, M)
     rep = r["reproj_px"].reshape(F, M, 2)
@@ -415,7 +640,7 @@ def stereo_fit(d: StereoData, spec: StereoSpec, *, max_offset_s: float | None = 
         params["single_view_points"] = n_single
     # covariates: the 3-D velocity projected on the rays' common normal
     vel = _velocity(d.ta, X)
-    nrm = _common_normals(d.views, ua, ub)
+    nrm = r["normal"].reshape(F, M, 3)          # the rays' common normals (NaN where a view is missing)
     v_perp = np.einsum("fmk,fmk->fm", vel, nrm)
     speed = np.linalg.norm(vel, axis=2)
     two = (n_views == 2) & np.isfinite(g)
@@ -434,9 +659,11 @@ def stereo_fit(d: StereoData, spec: StereoSpec, *, max_offset_s: float | None = 
     pts["n_views"] = n_views.ravel()
     pts["source"] = source.ravel()
     pts["speed_mm_s"] = speed.ravel()
-    pts = pts.sort_values(["frame", "marker"], kind="stable").reset_index(drop=True)
-    pts["marker"] = pd.Categorical(pts["marker"], categories=d.markers)
-    pts = pts.sort_values(["frame", "marker"], kind="stable").reset_index(drop=True)
+    if not (len(d.frames) < 2 or np.all(np.diff(d.frames) > 0)) or len(set(d.markers)) < M:
+        # rows by frame, then the markers' order (already so for increasing frames, distinct markers)
+        pts = pts.sort_values(["frame", "marker"], kind="stable").reset_index(drop=True)
+        pts["marker"] = pd.Categorical(pts["marker"], categories=d.markers)
+        pts = pts.sort_values(["frame", "marker"], kind="stable").reset_index(drop=True)
     pts["marker"] = pts["marker"].astype(str)
     cov = {"v_perp_mm_s": np.nan_to_num(v_perp[fi, mi]), "speed_mm_s": np.nan_to_num(speed[fi, mi]),
            "time_s": d.ta[fi]}
@@ -445,7 +672,6 @@ def stereo_fit(d: StereoData, spec: StereoSpec, *, max_offset_s: float | None = 
 
 def _interp_trajectory(t: np.ndarray, X: np.ndarray) -> np.ndarray:
     """Each marker's 3-D trajectory interpolated (PCHIP) through its gaps, NaN outside."""
-    from scipy.interpolate import PchipInterpolator
     out = X.copy()
     for j in range(X.shape[1]):
         ok = np.isfinite(X[:, j]).all(axis=1)
@@ -453,7 +679,7 @@ def _interp_trajectory(t: np.ndarray, X: np.ndarray) -> np.ndarray:
             continue
         q = ~ok & (t > t[ok][0]) & (t < t[ok][-1])
         if q.any():
-            out[q, j] = PchipInterpolator(t[ok], X[ok, j], axis=0)(t[q])
+            out[q, j] = _Interp(t[ok], X[ok, j][:, None, :]).at_points(t[q], np.zeros(int(q.sum()), int))
     return out
 
 
@@ -469,21 +695,6 @@ def _velocity(t: np.ndarray, X: np.ndarray) -> np.ndarray:
     forw[:-1] = fwd
     v = 0.5 * (back + forw)
     return np.where(np.isfinite(v), v, np.where(np.isfinite(back), back, forw))
-
-
-def _common_normals(views, ua: np.ndarray, ub: np.ndarray) -> np.ndarray:
-    F, M = ua.shape[:2]
-    out = np.full((F, M, 3), np.nan)
-    a, b = ua.reshape(-1, 2), ub.reshape(-1, 2)
-    ok = np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1)
-    if ok.any():
-        da, db = views[0].ray_directions(a[ok]), views[1].ray_directions(b[ok])
-        n = np.cross(da, db)
-        n /= np.linalg.norm(n, axis=1, keepdims=True)
-        o = out.reshape(-1, 3)
-        o[ok] = n
-        out = o.reshape(F, M, 3)
-    return out
 
 
 # --- effects and the loop --------------------------------------------------------------------------

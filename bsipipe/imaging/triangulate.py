@@ -68,7 +68,10 @@ class ViewGeometry:
 
     def ray_directions(self, pixels: np.ndarray) -> np.ndarray:
         """Unit world directions (n, 2 -> n, 3) of the rays through raw pixels."""
-        m = self.to_normalized(np.asarray(pixels, float).reshape(-1, 2))
+        return self.rays_from_normalized(self.to_normalized(np.asarray(pixels, float).reshape(-1, 2)))
+
+    def rays_from_normalized(self, m: np.ndarray) -> np.ndarray:
+        """Unit world directions (n, 3) of the rays through undistorted normalised points (n, 2)."""
         d = np.column_stack([m, np.ones(len(m))]) @ self.R      # R^T (x, y, 1) for each row
         return d / np.linalg.norm(d, axis=1, keepdims=True)
 
@@ -176,44 +179,91 @@ def triangulate_dlt(views: list[ViewGeometry], normalized: list[np.ndarray]) -> 
 
 def refine_points(views: list[ViewGeometry], normalized: list[np.ndarray], X0: np.ndarray,
                   n_iter: int = 10) -> np.ndarray:
-    """Gauss-Newton minimisation of the ideal-pixel reprojection error over ``X`` (n, 3)."""
+    r"""Gauss-Newton minimisation of the ideal-pixel reprojection error over ``X`` (n, 3).
+
+    Batched in closed form: each view adds the outer products of its two Jacobian rows
+    :math:`K_{ii}/z\,(R_i - u_i R_3)` to the 3x3 normal matrix, which is solved by its adjugate.
+    """
     X = np.array(X0, float)
+    geo = []
+    for v, m in zip(views, normalized):
+        m = np.asarray(m, float).reshape(-1, 2)
+        geo.append((v.R, v.t, v.K[0, 0], v.K[1, 1], m[:, 0], m[:, 1]))
     for _ in range(n_iter):
-        JtJ = np.zeros((len(X), 3, 3))
-        Jtr = np.zeros((len(X), 3))
-        for v, m in zip(views, normalized):
-            Xc = X @ v.R.T + v.t
-            z = Xc[:, 2]
-            u = Xc[:, :2] / z[:, None]
-            r = (np.asarray(m, float) - u) * [v.K[0, 0], v.K[1, 1]]
-            # d(u)/d(Xc) then chain with R
-            J = np.zeros((len(X), 2, 3))
-            J[:, 0, 0] = 1 / z
-            J[:, 0, 2] = -Xc[:, 0] / z ** 2
-            J[:, 1, 1] = 1 / z
-            J[:, 1, 2] = -Xc[:, 1] / z ** 2
-            J = J @ v.R
-            J[:, 0] *= v.K[0, 0]
-            J[:, 1] *= v.K[1, 1]
-            JtJ += np.einsum("nki,nkj->nij", J, J)
-            Jtr += np.einsum("nki,nk->ni", J, r)
-        ok = np.isfinite(JtJ).all(axis=(1, 2)) & (np.abs(np.linalg.det(JtJ)) > 1e-300)
-        step = np.zeros_like(X)
-        step[ok] = np.linalg.solve(JtJ[ok], Jtr[ok][..., None])[..., 0]
+        a00 = a01 = a02 = a11 = a12 = a22 = g0 = g1 = g2 = 0.0
+        for R, t, fx, fy, mx, my in geo:
+            Xc = X @ R.T + t
+            iz = 1 / Xc[:, 2]
+            ux, uy = Xc[:, 0] * iz, Xc[:, 1] * iz
+            rx, ry = (mx - ux) * fx, (my - uy) * fy
+            # rows of the Jacobian of K pi(R X + t): K_ii / z (R_i - u_i R_3)
+            sx, sy = fx * iz, fy * iz
+            x0, x1, x2 = sx * (R[0, 0] - ux * R[2, 0]), sx * (R[0, 1] - ux * R[2, 1]), sx * (R[0, 2] - ux * R[2, 2])
+            y0, y1, y2 = sy * (R[1, 0] - uy * R[2, 0]), sy * (R[1, 1] - uy * R[2, 1]), sy * (R[1, 2] - uy * R[2, 2])
+            a00 = a00 + (x0 * x0 + y0 * y0)
+            a01 = a01 + (x0 * x1 + y0 * y1)
+            a02 = a02 + (x0 * x2 + y0 * y2)
+            a11 = a11 + (x1 * x1 + y1 * y1)
+            a12 = a12 + (x1 * x2 + y1 * y2)
+            a22 = a22 + (x2 * x2 + y2 * y2)
+            g0 = g0 + (x0 * rx + y0 * ry)
+            g1 = g1 + (x1 * rx + y1 * ry)
+            g2 = g2 + (x2 * rx + y2 * ry)
+        # the 3x3 normal equations by the adjugate
+        c00 = a11 * a22 - a12 * a12
+        c01 = a02 * a12 - a01 * a22
+        c02 = a01 * a12 - a11 * a02
+        c11 = a00 * a22 - a02 * a02
+        c12 = a01 * a02 - a00 * a12
+        c22 = a00 * a11 - a01 * a01
+        det = a00 * c00 + a01 * c01 + a02 * c02
+        ok = np.isfinite(det) & (np.abs(det) > 1e-300) & np.isfinite(g0) & np.isfinite(g1) & np.isfinite(g2)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            step = np.column_stack([c00 * g0 + c01 * g1 + c02 * g2,
+                                    c01 * g0 + c11 * g1 + c12 * g2,
+                                    c02 * g0 + c12 * g1 + c22 * g2]) / det[:, None]
+        step[~ok] = 0.0
         X = X + step
         if np.max(np.abs(step), initial=0.0) < 1e-13 * max(1.0, float(np.max(np.abs(X), initial=1.0))):
             break
     return X
 
 
+def _midpoints(views: tuple[ViewGeometry, ViewGeometry], ma: np.ndarray, mb: np.ndarray) -> np.ndarray:
+    """Starting points (n, 3) for :func:`refine_points`: the midpoints of the common
+    perpendiculars of the two rays (closed form); nearly parallel rays get the linear
+    (:func:`triangulate_dlt`) point."""
+    va, vb = views
+    da, db = va.rays_from_normalized(ma), vb.rays_from_normalized(mb)
+    ca, cb = va.centre_mm, vb.centre_mm
+    w = ca - cb
+    b = np.einsum("ij,ij->i", da, db)
+    d, e = da @ w, db @ w
+    den = 1.0 - b * b
+    par = ~(den > 1e-9)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sa = (b * e - d) / den
+        sb = (e - b * d) / den
+    X = 0.5 * ((ca + sa[:, None] * da) + (cb + sb[:, None] * db))
+    if par.any():
+        X[par] = triangulate_dlt([va, vb], [ma[par], mb[par]])
+    return X
+
+
+def _gaps_of_rays(da: np.ndarray, db: np.ndarray, base: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Signed ray gaps (n,) of unit directions ``da``, ``db`` (n, 3) from centres ``base`` apart
+    (B's minus A's) and the rays' unit common normals (n, 3; NaN for parallel rays)."""
+    n = np.cross(da, db)
+    nn = np.linalg.norm(n, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        unit = n / nn[:, None]
+    return (n / np.where(nn > 0, nn, 1)[:, None]) @ base, unit
+
+
 def ray_gaps(views: tuple[ViewGeometry, ViewGeometry], uv_a: np.ndarray, uv_b: np.ndarray) -> np.ndarray:
     """Signed closest distance (n,) mm between the rays through raw pixels of two views."""
     va, vb = views
-    da, db = va.ray_directions(uv_a), vb.ray_directions(uv_b)
-    n = np.cross(da, db)
-    nn = np.linalg.norm(n, axis=1)
-    n = n / np.where(nn > 0, nn, 1)[:, None]
-    return n @ (vb.centre_mm - va.centre_mm)
+    return _gaps_of_rays(va.ray_directions(uv_a), vb.ray_directions(uv_b), vb.centre_mm - va.centre_mm)[0]
 
 
 def triangulate(views: tuple[ViewGeometry, ViewGeometry], uv_a, uv_b, *, refine: bool = True) -> dict:
@@ -222,24 +272,35 @@ def triangulate(views: tuple[ViewGeometry, ViewGeometry], uv_a, uv_b, *, refine:
     Returns a dict of arrays: ``X_mm`` (n, 3), ``ray_gap_mm`` (n,, >= 0), ``ray_gap_signed_mm``,
     ``reproj_px`` (n, 2: per view, raw pixels) and ``reproj_rms_px`` (n,).
     """
+    r = _triangulate(views, uv_a, uv_b, refine=refine)
+    del r["normal"]
+    return r
+
+
+def _triangulate(views: tuple[ViewGeometry, ViewGeometry], uv_a, uv_b, *, refine: bool = True) -> dict:
+    """:func:`triangulate`, and ``normal`` (n, 3): the rays' unit common normals.  Each view's
+    pixels are undistorted once (for the points, the gaps and the normals)."""
     uv_a = np.asarray(uv_a, float).reshape(-1, 2)
     uv_b = np.asarray(uv_b, float).reshape(-1, 2)
     n = len(uv_a)
     X = np.full((n, 3), np.nan)
     gap = np.full(n, np.nan)
     rep = np.full((n, 2), np.nan)
+    nrm = np.full((n, 3), np.nan)
     ok = np.isfinite(uv_a).all(axis=1) & np.isfinite(uv_b).all(axis=1)
     if ok.any():
         va, vb = views
         ma, mb = va.to_normalized(uv_a[ok]), vb.to_normalized(uv_b[ok])
-        X0 = triangulate_dlt([va, vb], [ma, mb])
-        Xo = refine_points([va, vb], [ma, mb], X0) if refine else X0
+        # the linear point without refinement; refined, any point near the optimum will do
+        Xo = refine_points([va, vb], [ma, mb], _midpoints(views, ma, mb)) if refine else \
+            triangulate_dlt([va, vb], [ma, mb])
         X[ok] = Xo
-        gap[ok] = ray_gaps(views, uv_a[ok], uv_b[ok])
+        gap[ok], nrm[ok] = _gaps_of_rays(va.rays_from_normalized(ma), vb.rays_from_normalized(mb),
+                                         vb.centre_mm - va.centre_mm)
         rep[ok, 0] = np.linalg.norm(va.project(Xo) - uv_a[ok], axis=1)
         rep[ok, 1] = np.linalg.norm(vb.project(Xo) - uv_b[ok], axis=1)
     return {"X_mm": X, "ray_gap_mm": np.abs(gap), "ray_gap_signed_mm": gap, "reproj_px": rep,
-            "reproj_rms_px": np.sqrt(np.mean(rep ** 2, axis=1))}
+            "reproj_rms_px": np.sqrt(np.mean(rep ** 2, axis=1)), "normal": nrm}
 
 
 def closest_point_on_ray(view: ViewGeometry, uv: np.ndarray, target_mm: np.ndarray) -> np.ndarray:
