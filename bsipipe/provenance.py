@@ -51,21 +51,24 @@ def library_versions() -> dict[str, str | None]:
     }
 
 
-def input_hashes(paths: Iterable[str | os.PathLike]) -> dict[str, str]:
-    """sha256 of every input file; a folder contributes each file below it."""
+def input_hashes(paths: Iterable[str | os.PathLike], known: dict[str, str] | None = None) -> dict[str, str]:
+    """sha256 of every input file; a folder contributes each file below it.  ``known``: hashes
+    already taken (e.g. by :func:`bsipipe.io.images.iter_frames` from the bytes it decoded),
+    keyed by ``str(path)``; the other files are read here."""
+    known = known or {}
     out: dict[str, str] = {}
     for p in paths:
         p = Path(p)
-        if p.is_dir():
-            for q in sorted(x for x in p.rglob("*") if x.is_file()):
-                out[str(q)] = sha256_file(q)
-        elif p.is_file():
-            out[str(p)] = sha256_file(p)
+        files = sorted(x for x in p.rglob("*") if x.is_file()) if p.is_dir() else [p] if p.is_file() else []
+        for q in files:
+            out[str(q)] = known.get(str(q)) or sha256_file(q)
     return out
 
 
-def provenance(config: Any, inputs: Iterable[str | os.PathLike], command: str | None = None) -> dict:
-    """The ``provenance`` block every JSON result carries (CONTRACTS.md)."""
+def provenance(config: Any, inputs: Iterable[str | os.PathLike], command: str | None = None,
+               known_hashes: dict[str, str] | None = None) -> dict:
+    """The ``provenance`` block every JSON result carries (CONTRACTS.md); ``known_hashes`` as
+    in :func:`input_hashes`."""
     if hasattr(config, "model_dump"):
         config = config.model_dump(mode="json")
     vers = library_versions()
@@ -73,7 +76,7 @@ def provenance(config: Any, inputs: Iterable[str | os.PathLike], command: str | 
         "bsipipe_version": vers["bsipipe"],
         "command": command,
         "config": config,
-        "inputs_sha256": input_hashes(inputs),
+        "inputs_sha256": input_hashes(inputs, known_hashes),
         "versions": vers,
         "utc_time": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     }

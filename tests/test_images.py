@@ -160,3 +160,23 @@ def test_corrupt_and_mismatched_images_name_the_file(tmp_path):
         list(iter_frames(tmp_path / "v.avi"))
     with pytest.raises(InputError, match="no such"):
         read_image(tmp_path / "missing.png")
+
+
+def test_frame_hashes_from_the_bytes_decoded_match_the_files(tmp_path):
+    """iter_frames(hashes=...) records each file's sha256 (from the bytes it decoded, for
+    PNG/JPEG; from the file for TIFF): the provenance block is the same as hashing the files
+    afresh, and a file iter_frames did not read (a note in the folder) is still hashed."""
+    from bsipipe.provenance import input_hashes, sha256_file
+    d = tmp_path / "seq"
+    d.mkdir()
+    rng = np.random.default_rng(0)
+    for k in range(3):
+        cv2.imwrite(str(d / f"f{k}.png"), rng.integers(0, 255, (16, 20), dtype=np.uint8))
+    tifffile.imwrite(d / "f3.tif", rng.integers(0, 255, (16, 20), dtype=np.uint8))
+    (d / "notes.txt").write_text("not a frame")
+    hashes: dict = {}
+    n = sum(1 for _ in iter_frames(d, hashes=hashes))
+    assert n == 4 and sorted(hashes) == sorted(str(p) for p in d.iterdir() if p.suffix != ".txt")
+    assert all(h == sha256_file(p) for p, h in hashes.items())
+    assert input_hashes([d], hashes) == input_hashes([d])
+    assert str(d / "notes.txt") in input_hashes([d], hashes)

@@ -417,6 +417,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
 
     tables, events, info = [], [], {}
     first_images: dict[str, np.ndarray] = {}
+    frame_hashes: dict[str, str] = {}     # sha256 of each frame file, from the bytes decoded (provenance)
     for v in views:
         path = cfg.views[v]
         s = None
@@ -441,7 +442,8 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
             bar.update(1)
 
         try:
-            res = track_view(prefetched(iter_frames(path, channel=cfg.channel)), s, d, cfg.polarity, view=v,
+            res = track_view(prefetched(iter_frames(path, channel=cfg.channel, hashes=frame_hashes)), s, d,
+                             cfg.polarity, view=v,
                              fps=cfg.fps, roi=cfg.detection.roi, detection=det, settings=tk, on_frame=on_frame)
         except ValueError as e:
             raise InputError(str(e), path=path) from None
@@ -616,7 +618,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
                                                                            for v in first_images},
                                                     seed_df, d))
     inputs = [p for p in cfg.views.values()] + [p for p in (cfg.calibration, cfg.seeds) if p]
-    result["provenance"] = provenance(cfg, inputs, command="track")
+    result["provenance"] = provenance(cfg, inputs, command="track", known_hashes=frame_hashes)
     rs.add_json("track.json", result)
     rs.commit()
     return result

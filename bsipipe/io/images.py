@@ -164,7 +164,9 @@ def _check_png_complete(path: Path) -> None:
         raise InputError("PNG file is truncated (no IEND chunk at the end)", path=path)
 
 
-def _read_cv2(path: Path) -> np.ndarray:
+def _read_cv2(path: Path, hashes: dict | None = None) -> np.ndarray:
+    """Decode an image file with OpenCV; with ``hashes``, the sha256 of the bytes decoded is
+    stored under ``str(path)`` (the provenance hash without reading the file twice)."""
     import cv2
     if path.suffix.lower() in (".jpg", ".jpeg"):
         _check_jpeg_complete(path)
@@ -173,6 +175,9 @@ def _read_cv2(path: Path) -> np.ndarray:
     data = np.fromfile(str(path), dtype=np.uint8)
     if data.size == 0:
         raise InputError("file is empty", path=path)
+    if hashes is not None:
+        import hashlib
+        hashes[str(path)] = hashlib.sha256(data).hexdigest()
     a = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
     if a is None:
         raise InputError("cannot decode image (corrupt file or unsupported format)", path=path)
@@ -266,9 +271,14 @@ def read_image(path: str | os.PathLike, *, dtype=None, channel: int | None = Non
 
 # --- sequences -----------------------------------------------------------------------------
 
-def _iter_file(path: Path, dtype, channel) -> Iterator[tuple[str, np.ndarray, float | None, int]]:
-    """Frames inside one file: (name, gray image, time_s, frame index within the file)."""
+def _iter_file(path: Path, dtype, channel, hashes: dict | None = None
+               ) -> Iterator[tuple[str, np.ndarray, float | None, int]]:
+    """Frames inside one file: (name, gray image, time_s, frame index within the file); with
+    ``hashes``, the file's sha256 is stored in it under ``str(path)``."""
     suf = path.suffix.lower()
+    if hashes is not None and (suf in VIDEO_SUFFIXES or suf in (".tif", ".tiff") or _is_dicom(path)):
+        from ..provenance import sha256_file
+        hashes[str(path)] = sha256_file(path)
     if suf in VIDEO_SUFFIXES:
         yield from _iter_video(path, dtype, channel)
     elif suf in (".tif", ".tiff"):
@@ -290,7 +300,7 @@ def _iter_file(path: Path, dtype, channel) -> Iterator[tuple[str, np.ndarray, fl
             name = path.name if n == 1 else f"{path.name}#{k}"
             yield name, _finish(a[k], dtype, True, channel, path, k if n > 1 else None), times[k], k
     else:
-        yield path.name, _finish(_read_cv2(path), dtype, False, channel, path), None, 0
+        yield path.name, _finish(_read_cv2(path, hashes), dtype, False, channel, path), None, 0
 
 
 def _iter_video(path: Path, dtype, channel):
@@ -315,7 +325,7 @@ def _iter_video(path: Path, dtype, channel):
 
 
 def iter_frames(source: str | os.PathLike, *, dtype=None, channel: int | None = None,
-                check_size: bool = True) -> Iterator[Frame]:
+                check_size: bool = True, hashes: dict | None = None) -> Iterator[Frame]:
     """Stream the frames of a source, one :class:`Frame` at a time.
 
     ``source`` is a folder of image files or a glob (sorted by name, see
@@ -323,7 +333,9 @@ def iter_frames(source: str | os.PathLike, *, dtype=None, channel: int | None = 
     multi-frame DICOM, a video (AVI, MP4, ...), or a single image (one frame).  Frame
     indices run over the whole source.  With ``check_size`` every frame must have the
     size and the pixel type (bit depth) of the first; a difference is an InputError naming the
-    file and frame.
+    file and frame.  ``hashes`` (a dict) receives the sha256 of every file read, keyed by
+    ``str(path)`` as :func:`bsipipe.provenance.input_hashes` keys them: an image file's from
+    the bytes it was decoded from, so a command's provenance need not read its frames again.
     """
     s = str(source)
     p = Path(s)
@@ -335,7 +347,7 @@ def iter_frames(source: str | os.PathLike, *, dtype=None, channel: int | None = 
     first = None
     index = 0
     for f in files:
-        for name, img, t, k in _iter_file(f, dtype, channel):
+        for name, img, t, k in _iter_file(f, dtype, channel, hashes):
             if check_size:
                 if shape0 is None:
                     shape0, dtype0, first = img.shape, img.dtype, name
