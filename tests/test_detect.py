@@ -1,6 +1,7 @@
 """Marker detection on synthetic beads with known centres, a real X-ray frame against
-XMALab-style refined positions, and real microscopy against trackpy."""
+XMALab-style refined positions, real microscopy against trackpy, and the per-frame fast paths against the plain formulas."""
 
+import math
 from pathlib import Path
 
 import cv2
@@ -9,6 +10,7 @@ import pandas as pd
 import pytest
 from scipy.spatial import cKDTree
 
+import bsipipe.imaging.detect as D
 from bsipipe.imaging.camera import Camera
 from bsipipe.imaging.detect import (FieldOfView, detect_markers, find_field_of_view, pixel_noise, refine_at,
                                     structuring_size, tophat)
@@ -370,3 +372,228 @@ def test_microscopy_frame29_vs_trackpy():
           f"{d_par.max():.2g} px, max mass difference {dmass:.2g})")
     assert frac_par >= 0.95
     assert abs(len(par) - len(F)) <= 0.05 * len(F)
+
+
+# --- the per-frame fast paths against the plain formulas they replace ----------------------------
+#
+# detect.py's per-frame path (window_arrays, detect_arrays, _measure) is written for few numpy
+# calls; each shortcut must give the values of the straightforward computation.  The references
+# below are those computations, written plainly.
+
+def _ref_unclipped(a):
+    top = np.iinfo(a.dtype).max
+    return cv2.erode(cv2.inRange(a, 1, top - 1), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE) > 0
+
+
+def _ref_immerkaer(a, step):
+    r = cv2.filter2D(a.astype(np.float64), cv2.CV_64F, D._IMMERKAER.astype(np.float64),
+                     borderType=cv2.BORDER_REPLICATE)[1:-1:step, 1:-1:step]
+    return np.rint(r).astype(np.int64)
+
+
+def _test_images(rng):
+    """8/16-bit frames with clipped regions (black and saturated), odd sizes."""
+    out = []
+    for shape, dtype in (((203, 317), np.uint8), ((64, 64), np.uint8), ((257, 128), np.uint16),
+                         ((1024, 1024), np.uint8)):
+        top = np.iinfo(dtype).max
+        a = rng.normal(0.5 * top, 0.1 * top, shape)
+        a[: shape[0] // 5] = 0                                  # a black band
+        a[:, -shape[1] // 6:] = top                             # a saturated band
+        a[rng.random(shape) < 0.01] = top                       # specks
+        out.append(np.clip(a, 0, top).astype(dtype))
+    return out
+
+
+def test_area_reduction_is_opencv_inter_area():
+    rng = np.random.default_rng(0)
+    for f in (2, 3, 4, 5, 8, 16):
+        for shape in ((f * 17, f * 23), (f * 5 + 3, f * 9 + 1), (256, 512)):
+            a = rng.integers(0, 256, shape).astype(np.uint8)
+            a[: shape[0] // 3] = 255                            # all-saturated blocks: sums at the top
+            ref = cv2.resize(a, (shape[1] // f, shape[0] // f), interpolation=cv2.INTER_AREA)
+            assert np.array_equal(D._area_reduced(a, f), ref), (f, shape)
+
+
+def test_grid_pixels_are_the_full_frame_tests_sampled():
+    rng = np.random.default_rng(1)
+    for a in _test_images(rng):
+        for g in (2, 3, 8):
+            unc0, unc1, hp = D._grid_pixels(a, g)
+            full = _ref_unclipped(a)
+            assert np.array_equal(unc0, full[::g, ::g]) and np.array_equal(unc1, full[1:-1:g, 1:-1:g])
+            assert hp.dtype == np.int32 and np.array_equal(hp, _ref_immerkaer(a, g))
+            assert np.array_equal(hp, D._immerkaer(a, g))
+
+
+def test_median_is_numpys():
+    rng = np.random.default_rng(2)
+    for shape in ((1,), (2,), (7,), (7221,), (12, 1), (12, 144), (12, 201), (3, 324), (5, 9)):
+        for dtype in (np.float32, np.float64, np.int32):
+            v = (rng.normal(size=shape) * 7).astype(dtype)
+            for axis in ((None, 0) if len(shape) == 1 else (None, 0, 1)):
+                assert np.array_equal(np.asarray(D._median(v, axis), float), np.median(v, axis=axis))
+
+
+def _ref_neighbour_valid(xy, others, ix, iy, geo):
+    reach = geo.radius + 1.0
+    px = ix[:, None] + geo.dx[None]
+    py = iy[:, None] + geo.dy[None]
+    valid = np.ones(px.shape, bool)
+    for o in others:
+        far = (np.abs(o[0] - xy[:, 0]) >= 0.5) | (np.abs(o[1] - xy[:, 1]) >= 0.5)
+        d2_o = (px - o[0]) ** 2 + (py - o[1]) ** 2
+        d2_s = (px - xy[:, 0, None]) ** 2 + (py - xy[:, 1, None]) ** 2
+        valid &= ~(far[:, None] & (d2_o < d2_s) & (d2_o <= reach * reach))
+    return valid
+
+
+@pytest.mark.parametrize("n", [12, 90])
+def test_neighbour_masks_tabulated_and_plain_agree(n):
+    """Integer neighbours (a frame's candidates) use a table, others the formula; with many
+    points the pairs come from KD-trees, unsorted."""
+    rng = np.random.default_rng(3)
+    st = D.DetectionSettings()
+    geo = D._geo(4.0, st.smooth_px(4.0), st.window_px(4.0))
+    pts = np.rint(rng.uniform(0, 60, (n, 2)))
+    ix, iy = pts[:, 0].astype(int), pts[:, 1].astype(int)
+    for others in (pts, pts + rng.uniform(-0.5, 0.5, pts.shape)):
+        got = D._neighbour_valid(pts, others, ix, iy, geo)
+        ref = _ref_neighbour_valid(pts, others, ix, iy, geo)
+        assert got is not None and np.array_equal(got, ref)
+
+
+def _ref_dark_objects(img, diameter_px, grow_px=2):
+    a = np.asarray(img)
+    h, w = a.shape
+    f = max(1, int(diameter_px))
+    small = cv2.resize(a, (max(w // f, 1), max(h // f, 1)), interpolation=cv2.INTER_AREA)
+    k = max(3, int(round(16 * diameter_px / f)) | 1)
+    bg = cv2.morphologyEx(small, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)),
+                          borderType=cv2.BORDER_REPLICATE)
+    dark = ((2 * small.astype(np.int32) < bg) & (bg > 0)).astype(np.uint8)
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(dark, connectivity=8)
+    keep = stats[:, cv2.CC_STAT_AREA] * f * f > math.pi * (2 * diameter_px) ** 2
+    keep[0] = False
+    return keep[lab] if keep.any() else None
+
+
+def test_dark_objects_as_plainly_computed():
+    rng = np.random.default_rng(4)
+    for d in (4.0, 5.0, 8.0):
+        img = rng.normal(180, 4, (512, 640))
+        img[100:300, 200:230] = 60                              # an instrument
+        img[400:404, 500:504] = 50                              # a bead: too small to count
+        for x, y in rng.uniform(20, 480, (30, 2)):              # dark specks
+            img[int(y):int(y) + 3, int(x):int(x) + 3] = 70
+        img = np.clip(img, 0, 255).astype(np.uint8)
+        got, ref = D._DarkObjects.find(img, d), _ref_dark_objects(img, d)
+        assert (got is None) == (ref is None)
+        if ref is not None:
+            assert np.array_equal(got.small, ref)
+    assert D._DarkObjects.find(np.full((200, 200), 90, np.uint8), 4.0) is None
+
+
+def _ref_centroid(s, geo, n_iter):
+    sp = np.maximum(s[:, geo.support], 0.0)
+    X, Y = geo.dx[geo.support][None], geo.dy[geo.support][None]
+    cx, cy = np.zeros(len(s)), np.zeros(len(s))
+    for _ in range(n_iter + 1):
+        ddx, ddy = X - cx[:, None], Y - cy[:, None]
+        w = sp * np.clip(geo.radius + 1.0 - np.sqrt(ddx * ddx + ddy * ddy), 0.0, 1.0)
+        m = w.sum(axis=1)
+        mm = np.where(m > 0, m, 1.0)
+        nx = np.where(m > 0, cx + (w * ddx).sum(axis=1) / mm, cx)
+        ny = np.where(m > 0, cy + (w * ddy).sum(axis=1) / mm, cy)
+        cx, cy = np.clip(nx, -1.5, 1.5), np.clip(ny, -1.5, 1.5)
+    return np.column_stack([cx, cy]), m
+
+
+def _ref_gaussian_fit(s, geo, start, sigma0, valid, n_iter=5):
+    """The batched Levenberg-Marquardt fit, written plainly."""
+    reach = geo.radius + 1.0 + np.hypot(start[:, 0], start[:, 1]).max()
+    sup = geo.support[geo.support_r <= reach + 1e-9]
+    X, Y = geo.dx[sup][None], geo.dy[sup][None]
+    S = s[:, sup]
+    dist = np.hypot(X - start[:, 0, None], Y - start[:, 1, None])
+    win = (dist <= geo.radius + 1.0) * (1.0 if valid is None else valid[:, sup])
+    P = np.column_stack([start, np.full(len(S), sigma0), np.maximum((S * (dist <= 1.0)).max(axis=1), 1e-6),
+                         np.zeros(len(S))])
+    lam = np.full(len(S), 1e-3)
+
+    def model(P):
+        ex, ey = X - P[:, 0:1], Y - P[:, 1:2]
+        g = np.exp(-(ex ** 2 + ey ** 2) / (2 * P[:, 2:3] ** 2))
+        return g, ex, ey, P[:, 3:4] * g + P[:, 4:5]
+
+    g, ex, ey, m = model(P)
+    cost = (win * (m - S) ** 2).sum(axis=1)
+    for _ in range(n_iter):
+        a = P[:, 3:4] * g / P[:, 2:3] ** 2
+        J = np.stack([a * ex, a * ey, a * (ex ** 2 + ey ** 2) / P[:, 2:3], g, np.ones_like(g)], axis=1)
+        H = (J * win[:, None]) @ J.transpose(0, 2, 1)
+        H = H + lam[:, None, None] * (H + 1e-12) * np.eye(5)
+        step = np.linalg.solve(H, ((J * win[:, None]) @ (S - m)[..., None]))[..., 0]
+        cand = P + step
+        cand[:, 2] = np.clip(cand[:, 2], 0.3, geo.half)
+        g1, ex1, ey1, m1 = model(cand)
+        c1 = (win * (m1 - S) ** 2).sum(axis=1)
+        b = c1 < cost
+        P = np.where(b[:, None], cand, P)
+        g, ex, ey, m = (np.where(b[:, None], u, v) for u, v in ((g1, g), (ex1, ex), (ey1, ey), (m1, m)))
+        cost = np.where(b, c1, cost)
+        lam = np.where(b, lam * 0.3, lam * 10.0)
+        if ((np.abs(step[:, :2]).max(axis=1) < 1e-3) | ~b).all() and (lam < 1e3).all():
+            break
+    return P
+
+
+def test_patch_measurement_as_plainly_computed():
+    """Plane, centroid and Gaussian fit of real X-ray beads (twin-like synthetic frame, touching
+    neighbours included) against the plain formulas: to rounding."""
+    rng = np.random.default_rng(6)
+    centres = np.array([[60.3, 60.8], [66.1, 61.2], [120.4, 90.6], [40.2, 130.7], [150.5, 150.5], [100.0, 40.0]])
+    img = render_beads(centres, 4.0, 192, rng)
+    st = D.DetectionSettings()
+    blur, radius = st.smooth_px(4.0), st.window_px(4.0)
+    geo = D._geo(4.0, blur, radius)
+    pts = np.rint(centres)
+    ix, iy = pts[:, 0].astype(int), pts[:, 1].astype(int)
+    valid = D._neighbour_valid(pts, pts, ix, iy, geo)
+    assert valid is not None and not valid.all()                 # the touching pair masks each other
+    s = D._plane_removed(D._gather(img, ix, iy, geo.half), geo, 1.0, valid)
+    sv = s * valid
+    c, m, _ = D._centroid(sv, geo, 3)
+    c_ref, m_ref = _ref_centroid(sv, geo, 3)
+    np.testing.assert_allclose(c, c_ref, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(m, m_ref, rtol=1e-12)
+    sig0 = math.hypot(1.0, blur)
+    xy, amp, sig, ok = D._gaussian_fit(s, geo, c, sig0, valid)
+    P = _ref_gaussian_fit(s, geo, c, sig0, valid)
+    assert ok.all()
+    np.testing.assert_allclose(xy, P[:, :2], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(sig, P[:, 2], rtol=1e-9)
+    np.testing.assert_allclose(amp, P[:, 3], rtol=1e-9)
+    # and the centres are the beads'
+    assert np.abs(pts + xy - centres).max() < 0.15
+
+
+def test_peak_tests_agree():
+    """A maximum is a pixel no lower than any in the disk of side max(3, d) around it, the edge
+    replicated: the per-pixel test on the pixels above a threshold (:func:`_peaks_at`, with its
+    four-neighbour pre-test; detect_arrays) and one dilation (window_arrays) find the same."""
+    rng = np.random.default_rng(7)
+    ts = cv2.GaussianBlur(rng.normal(0, 1, (120, 333)).astype(np.float32), (0, 0), 1.2)
+    ts[50:52, 80:83] = ts.max() + 1                             # a plateau
+    ts[0, 5] = ts[119, 332] = ts.max() + 2                      # maxima at the edge
+    st = D.DetectionSettings(min_area_px=0, max_area_factor=100.0)
+    for d in (2.6, 4.0, 7.0):
+        k = max(3, int(round(d)) | 1)
+        thr = float(np.percentile(ts, 80))
+        ys, xs = np.nonzero(ts > thr)
+        px, py, _ = D._peaks_at(ts, xs, ys, d, 0.0, st)
+        peak = (ts >= cv2.dilate(ts, D._ellipse(k), borderType=cv2.BORDER_REPLICATE)) & (ts > thr)
+        qy, qx = np.nonzero(peak)
+        qx, qy, _ = D._peak_areas(ts, qx, qy, d, 0.0, st)
+        assert np.array_equal(px, qx) and np.array_equal(py, qy)
+        assert len(px) > 5
