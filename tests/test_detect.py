@@ -203,6 +203,65 @@ def test_field_of_view_cut_by_the_frame():
     assert not find_field_of_view(flat).found
 
 
+def test_field_of_view_of_the_twin_both_views():
+    """The twin's frames (bsipipe synth, default configuration, one frame per C-arm): a bright
+    field nearly as wide as the frame, a black surround, a large mid-grey head and a dark
+    indentor rod inside it.  Otsu's threshold split white from grey there and the field was
+    not found in cam1; both views' circles are now found within 1 px of the truth."""
+    from bsipipe.synth.config import SynthConfig
+    from bsipipe.synth.twin import Twin
+    tw = Twin(SynthConfig.model_validate({"calibration": {"views": 0, "stereo_views": 0},
+                                          "sequence": {"n_frames": 1}}))
+    seen = set()
+    for rel, img in tw.sequence_frames():
+        v = rel.split("/")[1]
+        det = tw.arms[v].detector
+        fov = find_field_of_view(img)
+        print(v, fov.to_dict(), "truth", det.fov_centre_px, det.fov_radius_px)
+        assert fov.found, v
+        assert np.hypot(fov.centre_px[0] - det.fov_centre_px[0], fov.centre_px[1] - det.fov_centre_px[1]) < 1.0
+        assert abs(fov.radius_px - det.fov_radius_px) < 1.0
+        seen.add(v)
+    assert seen == {"cam1", "cam2"}
+
+
+def _intensifier_frame(shape, centre, radius, rng, *, head=True, rod=True, bright=240.0, noise=2.0):
+    """A field (2 px soft edge, video gamma 1/2) with an elliptical mid-grey region and a
+    dark rod entering from the top, on a black surround."""
+    h, w = shape
+    yy, xx = np.mgrid[:h, :w]
+    m = np.clip((radius - np.hypot(xx - centre[0], yy - centre[1])) / 2 + 0.5, 0, 1)
+    lev = np.full((h, w), bright)
+    if head:
+        lev[np.hypot((xx - centre[0] + 20) / 1.6, yy - centre[1] - 70) < 200] = 90
+    if rod:
+        lev[:int(centre[1]), int(centre[0]) - 10:int(centre[0]) + 20] = 40
+    return (np.sqrt(m) * lev + rng.normal(0, noise, (h, w))).clip(0, 255).astype(np.uint8)
+
+
+def test_field_of_view_cut_by_three_edges():
+    """A field cut by the left, right and top edges of the frame, with a large grey head and
+    a rod inside it: found within a pixel (the old Otsu threshold did not find it)."""
+    rng = np.random.default_rng(3)
+    img = _intensifier_frame((900, 800), (401.7, 380.2), 430.5, rng)
+    assert img[0, 0] < 10 and img[-1, 400] < 10 and min(img[0, 300], img[400, 0], img[400, -1]) > 100   # 3 edges cut
+    fov = find_field_of_view(img)
+    assert fov.found
+    assert abs(fov.centre_px[0] - 401.7) < 1.0 and abs(fov.centre_px[1] - 380.2) < 1.0
+    assert abs(fov.radius_px - 430.5) < 1.0
+
+
+def test_field_of_view_without_surround():
+    """No surround, so no field: noise, a smooth gradient, and a dark round region at the
+    border of a frame (its edge is a circle, but the bright rest lies outside it)."""
+    rng = np.random.default_rng(4)
+    assert not find_field_of_view(rng.normal(100, 10, (512, 512)).clip(0, 255).astype(np.uint8)).found
+    yy, xx = np.mgrid[:600, :800]
+    assert not find_field_of_view((60 + 0.2 * xx + rng.normal(0, 3, xx.shape)).clip(0, 255).astype(np.uint8)).found
+    anatomy = 150 - 60 * np.exp(-((xx - 100) ** 2 + (yy - 300) ** 2) / (2 * 150 ** 2)) + rng.normal(0, 3, xx.shape)
+    assert not find_field_of_view(anatomy.clip(0, 255).astype(np.uint8)).found
+
+
 # --- the real X-ray frame ----------------------------------------------------------------------
 
 def _xray():

@@ -3,7 +3,8 @@ r"""Marker detection: region of interest, top-hat, noise threshold, blobs, sub-p
 The chain (:func:`detect_markers`), for markers of diameter ``d`` pixels:
 
 1. **Region of interest.**  An image intensifier images a circular field and leaves the rest
-   black; :func:`find_field_of_view` thresholds the dark surround (Otsu on a reduced copy),
+   black; :func:`find_field_of_view` thresholds the dark surround (a quarter of the way from its
+   level to the field's, on a reduced copy; the dark pixels connected to the image border),
    fits a circle to the field's edge (robustly, points on the image border and on dark
    objects inside the field left out, so a field cut by the frame is still found) and
    detection keeps away from its edge.  Or give ``roi``.
@@ -117,15 +118,25 @@ def _fit_circle(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
 
 
 def find_field_of_view(frame: np.ndarray, *, min_dark_fraction: float = 0.03,
-                       max_side_px: int = 256) -> FieldOfView:
+                       max_side_px: int = 256, level_fraction: float = 0.25) -> FieldOfView:
     """Find the intensifier's circular field by thresholding the dark surround.
 
-    The frame is reduced to at most ``max_side_px`` a side and thresholded by Otsu's method;
-    the largest bright component is the field.  A circle is fitted to its contour points
-    that are not on the image border, then refitted to the points within 2 reduced pixels
-    of it (dark instruments or labels inside the field bite into the contour, the circle is
-    what remains).  When less than ``min_dark_fraction`` of the frame is dark, or fewer than
-    half the contour points lie on the circle, the whole frame is the field.
+    The frame is reduced to at most ``max_side_px`` a side.  The surround is the darkest
+    class and lies outside the field, so it touches the image border: its level ``s`` is a
+    low percentile of the reduced frame (the middle of its darkest ``min_dark_fraction``),
+    the field's ``f`` the median of the frame or of its central region, whichever is higher
+    (dense anatomy or an instrument may fill the centre), and the threshold is
+    ``s + level_fraction (f - s)``: low, because the field may be darker at its edge
+    (vignetting, dense tissue) than in its middle, and an image intensifier's surround is
+    close to black.  (Otsu's threshold splits bright from grey when the field holds a large
+    mid-grey region, e.g. a head.)  The dark pixels connected to the image border are the
+    surround, the rest (dark objects inside the field included) the field; its largest
+    component's contour points that are not on the image border are fitted with a circle,
+    refitted to the points within 2 reduced pixels of it (dark instruments or tissue at
+    the field's edge bite into the contour, the circle is what remains), and the circle is
+    refined on the full frame (:func:`_refine_circle`).  When the surround covers less than
+    ``min_dark_fraction`` of the frame, fewer than half the contour points lie on the
+    circle, or the field does not lie inside it, the whole frame is the field.
     """
     img = np.asarray(frame)
     h, w = img.shape[:2]
@@ -134,18 +145,34 @@ def find_field_of_view(frame: np.ndarray, *, min_dark_fraction: float = 0.03,
     lo, hi = float(small.min()), float(small.max())
     if hi <= lo:
         return FieldOfView((h, w))
-    s8 = np.round((small - lo) * (255.0 / (hi - lo))).astype(np.uint8)
-    _, binary = cv2.threshold(s8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-    if 1.0 - np.count_nonzero(binary) / binary.size < min_dark_fraction:
+    hs, ws = small.shape
+    flat = small.ravel()
+    k = min(int(0.5 * min_dark_fraction * flat.size), flat.size - 1)
+    surround = float(np.partition(flat, k)[k])
+    yy, xx = np.ogrid[:hs, :ws]
+    central = (xx - (ws - 1) / 2) ** 2 + (yy - (hs - 1) / 2) ** 2 <= (0.25 * min(hs, ws)) ** 2
+    field = max(float(np.median(small[central])), float(np.median(flat)))
+    if field <= surround:
         return FieldOfView((h, w))
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
+    dark = (small <= surround + level_fraction * (field - surround)).astype(np.uint8)
+    # the surround: the dark components that touch the image border
+    n, labels = cv2.connectedComponents(dark, connectivity=8)
+    edge = np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])
+    outer = np.unique(edge[edge > 0])
+    if len(outer) == 0:
+        return FieldOfView((h, w))
+    lut = np.zeros(n, np.uint8)
+    lut[outer] = 1
+    outside = lut[labels]
+    if np.count_nonzero(outside) < min_dark_fraction * outside.size:
+        return FieldOfView((h, w))
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(1 - outside, connectivity=4)
     if n < 2:
         return FieldOfView((h, w))
     k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
     comp = (labels == k).astype(np.uint8)
     contours, _ = cv2.findContours(comp, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     pts = max(contours, key=len).reshape(-1, 2).astype(float)
-    hs, ws = comp.shape
     pts = pts[(pts[:, 0] > 1) & (pts[:, 1] > 1) & (pts[:, 0] < ws - 2) & (pts[:, 1] < hs - 2)]
     if len(pts) < 20:
         return FieldOfView((h, w))
@@ -159,9 +186,66 @@ def find_field_of_view(frame: np.ndarray, *, min_dark_fraction: float = 0.03,
         use = new
     if np.mean(off <= 2.0) < 0.5 or r < 0.2 * min(hs, ws):
         return FieldOfView((h, w))
+    # the field lies inside its circle (a dark round region at the border of a frame without
+    # surround has a circular edge too, but the bright rest lies outside it)
+    inside = (xx - cx) ** 2 + (yy - cy) ** 2 <= (r + 2.0) ** 2
+    if np.count_nonzero(comp & inside) < 0.9 * np.count_nonzero(comp):
+        return FieldOfView((h, w))
     # reduced pixel i covers full pixels [i f, (i + 1) f); the contour runs on the field's
-    # outermost bright pixels, so the edge itself is half a reduced pixel further out
-    return FieldOfView((h, w), ((cx + 0.5) * f - 0.5, (cy + 0.5) * f - 0.5), (r + 0.5) * f, True)
+    # outermost pixels, so the edge itself is about half a reduced pixel further out
+    cx, cy, r = (cx + 0.5) * f - 0.5, (cy + 0.5) * f - 0.5, (r + 0.5) * f
+    if f > 1:
+        theta = np.arctan2(pts[use, 1] - (cy + 0.5) / f + 0.5, pts[use, 0] - (cx + 0.5) / f + 0.5)
+        cx, cy, r = _refine_circle(img, cx, cy, r, theta, surround, 2.0 * f)
+    return FieldOfView((h, w), (cx, cy), r, True)
+
+
+def _refine_circle(img: np.ndarray, cx: float, cy: float, r: float, theta: np.ndarray, surround: float,
+                   reach: float) -> tuple[float, float, float]:
+    """The field's circle refined on the full-resolution frame: along the radius at each
+    angle ``theta`` (the coarse fit's inlying contour points), the edge is where the profile
+    last crosses halfway between the field's level just inside (median of the profile's
+    inner part) and the surround's; a circle is fitted to these edge points, refitted to
+    those within 1.5 px.  Profiles without contrast (an instrument across the edge) or
+    reaching off the frame are left out; with too few edge points the coarse circle stays."""
+    h, w = img.shape[:2]
+    c, s = np.cos(theta), np.sin(theta)
+    far = np.hypot(np.maximum(np.abs(cx + c * (r + reach) - (w - 1) / 2) - (w - 1) / 2, 0),
+                   np.maximum(np.abs(cy + s * (r + reach) - (h - 1) / 2) - (h - 1) / 2, 0))
+    keep = far == 0
+    c, s = c[keep], s[keep]
+    if len(c) < 20:
+        return cx, cy, r
+    step = 0.5
+    d = np.arange(-2 * reach, reach + step / 2, step, dtype=np.float32)
+    X = (cx + c[:, None] * (r + d[None])).astype(np.float32)
+    Y = (cy + s[:, None] * (r + d[None])).astype(np.float32)
+    src = img if img.dtype == np.float32 else img.astype(np.float32)
+    prof = cv2.remap(src, X, Y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    inner = np.median(prof[:, :int(reach / step)], axis=1)
+    half = 0.5 * (inner + surround)
+    above = prof >= half[:, None]
+    j = len(d) - 1 - np.argmax(above[:, ::-1], axis=1)          # the last sample above half
+    ok = above.any(axis=1) & (j < len(d) - 1) & (inner - surround > 0.1 * (np.median(inner) - surround))
+    if ok.sum() < 20:
+        return cx, cy, r
+    rows = np.nonzero(ok)[0]
+    j = j[ok]
+    a, b = prof[rows, j], prof[rows, j + 1]
+    t = np.clip((a - half[ok]) / np.maximum(a - b, 1e-6), 0, 1)
+    rad = r + d[j] + t * step
+    ex, ey = cx + c[ok] * rad, cy + s[ok] * rad
+    use = np.ones(len(ex), bool)
+    fx, fy, fr = cx, cy, r
+    for _ in range(5):
+        fx, fy, fr = _fit_circle(ex[use], ey[use])
+        new = np.abs(np.hypot(ex - fx, ey - fy) - fr) <= 1.5
+        if new.sum() < 20:
+            return cx, cy, r
+        if np.array_equal(new, use):
+            break
+        use = new
+    return fx, fy, fr
 
 
 # --- top-hat and noise -----------------------------------------------------------------------
