@@ -30,8 +30,9 @@ Rows
    (``bench/decode_frames.py``), both as fresh processes (start-up included), interleaved,
    twice each (``--quick``: once), at 200 frames per view and (not with ``--quick``) 2,000.
    Target: command <= 1.5x decode, judged two ways, one row each: **wall time** (what a user
-   waits; the command decodes on a reader thread while it tracks, so on two cores it takes
-   about the longer of the two plus its start-up) and **CPU time** (user + system: the work
+   waits; the command decodes on reader threads while it tracks, so it takes about the longer
+   of decoding, spread over the cores, and tracking, plus its start-up; the decode child
+   reads on one thread, as a plain frame reader does) and **CPU time** (user + system: the work
    done in all, the stricter measure and the one load cannot skew).  The fastest run of each
    counts (load only adds time).  From the two lengths the CPU time is split into a fixed
    part (start-up, imports, the loop, figures) and a per-frame part, for the command and for
@@ -386,8 +387,8 @@ def bench_command(src: Path, quick: bool, say=print) -> tuple[list[Row], dict]:
         why = (f"track exited {cmd.returncode}: {cmd.tail(3)}" if not cmd.ok else
                f"decode exited {dec.returncode}" if not dec.ok else "")
         note_w = (f"2 views x {n} frames, the faster of {1 if quick else 2} interleaved runs each; the command "
-                  f"decodes on a reader thread while it tracks, so on 2 cores it takes about the longer of the two "
-                  f"plus its start-up; decode child peak {fmt_bytes(dec.peak_rss_bytes)}" if ok_both else why)
+                  f"decodes on reader threads (cores + 1, at most 4) while it tracks, so it takes about the longer of "
+                  f"decoding (spread over the cores) and tracking, plus its start-up; the peer decodes on one thread; decode child peak {fmt_bytes(dec.peak_rss_bytes)}" if ok_both else why)
         note_c = (f"CPU time (user + system) of the same runs, the smaller of each: what the command costs in all, "
                   f"whatever the cores; decoding is {100 * cpu['decode'] / cpu['command']:.0f} % of it at best"
                   if ok_both else why)

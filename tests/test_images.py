@@ -180,3 +180,29 @@ def test_frame_hashes_from_the_bytes_decoded_match_the_files(tmp_path):
     assert all(h == sha256_file(p) for p, h in hashes.items())
     assert input_hashes([d], hashes) == input_hashes([d])
     assert str(d / "notes.txt") in input_hashes([d], hashes)
+
+
+@pytest.mark.parametrize("workers", [2, 3])
+def test_decoding_threads_give_the_same_frames_and_errors(tmp_path, workers):
+    """iter_frames(workers=N) on a folder of PNGs: the frames, names, order and hashes of a
+    sequential read; a corrupt file raises when its turn comes (the frames before it are
+    yielded first), naming it; a consumer that stops early stops the pool."""
+    rng = np.random.default_rng(1)
+    imgs = [rng.integers(0, 255, (12, 14), dtype=np.uint8) for _ in range(9)]
+    for k, a in enumerate(imgs):
+        cv2.imwrite(str(tmp_path / f"f{k:02d}.png"), a)
+    h1, h2 = {}, {}
+    seq = list(iter_frames(tmp_path, hashes=h1))
+    par = list(iter_frames(tmp_path, hashes=h2, workers=workers))
+    assert [f.name for f in par] == [f.name for f in seq] == [f"f{k:02d}.png" for k in range(9)]
+    assert all(np.array_equal(a.image, b.image) and a.index == b.index for a, b in zip(seq, par))
+    assert h1 == h2 and len(h1) == 9
+    it = iter_frames(tmp_path, workers=workers)
+    assert next(it).name == "f00.png"
+    it.close()
+    (tmp_path / "f05.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"junk" * 10 + b"IEND\xaeB`\x82")
+    got = []
+    with pytest.raises(InputError, match="f05.png"):
+        for f in iter_frames(tmp_path, workers=workers):
+            got.append(f.name)
+    assert got == [f"f{k:02d}.png" for k in range(5)]

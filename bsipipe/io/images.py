@@ -324,8 +324,49 @@ def _iter_video(path: Path, dtype, channel):
         cap.release()
 
 
+#: Suffixes of files that hold exactly one frame, decoded by OpenCV: a folder of them can be
+#: decoded by several threads at once (:func:`iter_frames` ``workers``).
+_ONE_FRAME_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm")
+
+
+def _files_in_order(files: list[Path], dtype, channel, hashes: dict | None, workers: int):
+    """``(file, (name, image, time_s, k))`` for every frame of ``files`` in order; single-frame
+    image files are decoded ``workers`` at a time on a thread pool (OpenCV's decoders and file
+    reads release the GIL), at most ``2 workers`` files ahead of the one being yielded, so
+    memory stays flat.  An error is raised when its file's turn comes, as in a sequential read."""
+    if workers <= 1 or len(files) < 2 or any(f.suffix.lower() not in _ONE_FRAME_SUFFIXES for f in files):
+        for f in files:
+            for item in _iter_file(f, dtype, channel, hashes):
+                yield f, item
+        return
+    from collections import deque
+    from concurrent.futures import ThreadPoolExecutor
+
+    def one(f: Path):
+        return list(_iter_file(f, dtype, channel, hashes))
+
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="bsipipe-decode") as pool:
+        pending: deque = deque()
+        it = iter(files)
+        try:
+            for f in it:
+                pending.append((f, pool.submit(one, f)))
+                if len(pending) >= 2 * workers:
+                    break
+            while pending:
+                f, fut = pending.popleft()
+                nxt = next(it, None)
+                if nxt is not None:
+                    pending.append((nxt, pool.submit(one, nxt)))
+                for item in fut.result():
+                    yield f, item
+        finally:
+            for _, fut in pending:
+                fut.cancel()
+
+
 def iter_frames(source: str | os.PathLike, *, dtype=None, channel: int | None = None,
-                check_size: bool = True, hashes: dict | None = None) -> Iterator[Frame]:
+                check_size: bool = True, hashes: dict | None = None, workers: int = 1) -> Iterator[Frame]:
     """Stream the frames of a source, one :class:`Frame` at a time.
 
     ``source`` is a folder of image files or a glob (sorted by name, see
@@ -336,6 +377,8 @@ def iter_frames(source: str | os.PathLike, *, dtype=None, channel: int | None = 
     file and frame.  ``hashes`` (a dict) receives the sha256 of every file read, keyed by
     ``str(path)`` as :func:`bsipipe.provenance.input_hashes` keys them: an image file's from
     the bytes it was decoded from, so a command's provenance need not read its frames again.
+    ``workers`` > 1 decodes a folder (or glob) of single-frame image files that many at a
+    time, a few files ahead (same frames, same order, same errors).
     """
     s = str(source)
     p = Path(s)
@@ -346,21 +389,20 @@ def iter_frames(source: str | os.PathLike, *, dtype=None, channel: int | None = 
     shape0 = None
     first = None
     index = 0
-    for f in files:
-        for name, img, t, k in _iter_file(f, dtype, channel, hashes):
-            if check_size:
-                if shape0 is None:
-                    shape0, dtype0, first = img.shape, img.dtype, name
-                elif img.shape != shape0:
-                    h, w = img.shape
-                    raise InputError(
-                        f"image is {w}x{h} px, expected {shape0[1]}x{shape0[0]} px like {first}",
-                        path=f, frame=index)
-                elif img.dtype != dtype0:  # e.g. one 16-bit export among 8-bit frames: grey levels differ
-                    raise InputError(f"image has {_depth(img.dtype)} pixels, expected {_depth(dtype0)} like {first}",
-                                     path=f, frame=index)
-            yield Frame(index, name, img, t)
-            index += 1
+    for f, (name, img, t, k) in _files_in_order(files, dtype, channel, hashes, int(workers)):
+        if check_size:
+            if shape0 is None:
+                shape0, dtype0, first = img.shape, img.dtype, name
+            elif img.shape != shape0:
+                h, w = img.shape
+                raise InputError(
+                    f"image is {w}x{h} px, expected {shape0[1]}x{shape0[0]} px like {first}",
+                    path=f, frame=index)
+            elif img.dtype != dtype0:  # e.g. one 16-bit export among 8-bit frames: grey levels differ
+                raise InputError(f"image has {_depth(img.dtype)} pixels, expected {_depth(dtype0)} like {first}",
+                                 path=f, frame=index)
+        yield Frame(index, name, img, t)
+        index += 1
 
 
 def _depth(dtype) -> str:
