@@ -676,19 +676,6 @@ def _row_median(v: np.ndarray, rows: tuple | None) -> np.ndarray:
     return out
 
 
-def _row_robust_sd(v: np.ndarray) -> np.ndarray:
-    """:func:`_robust_sd` of each row of ``v`` (N, M) (the same values)."""
-    m = v.shape[1]
-    lo, hi = (m - 1) // 2, m // 2
-    srt = np.sort(v, axis=1)
-    a = np.abs(v - (0.5 * (srt[:, lo] + srt[:, hi]))[:, None])
-    srt = np.sort(a, axis=1)
-    sd = _MAD * (0.5 * (srt[:, lo] + srt[:, hi]))
-    if (sd > 0).all():
-        return sd
-    return np.where(sd > 0, sd, np.mean(a, axis=1) * math.sqrt(math.pi / 2))
-
-
 def _plane_removed(p: np.ndarray, geo: _Geo, sign: float, valid: np.ndarray | None) -> np.ndarray:
     """Patches with a background plane removed, markers positive (N, P*P).
 
@@ -743,7 +730,7 @@ def _above_peak_excluded(s: np.ndarray, geo: _Geo, valid: np.ndarray | None) -> 
     above = s > peak[:, None]
     if not above.any():                # nothing above the peak at all: no noise estimate needed
         return valid
-    noise = _row_robust_sd(s[:, geo.ring_idx])
+    noise = _robust_sd(s[:, geo.ring_idx], axis=1)
     hot = above & (s > (peak + 3 * noise)[:, None])
     if not hot.any():
         return valid
@@ -1047,7 +1034,7 @@ def _peaks(ts: np.ndarray, above: np.ndarray, diameter_px: float, floor: np.ndar
 
 
 @functools.lru_cache(maxsize=8)
-def _disc_offsets(radius: float) -> tuple[np.ndarray, np.ndarray]:
+def _offsets_within(radius: float) -> tuple[np.ndarray, np.ndarray]:
     """Offsets (dy, dx) of the pixels within ``radius`` of a pixel, row by row (read-only)."""
     R = int(math.ceil(radius))
     off = np.arange(-R, R + 1)
@@ -1103,7 +1090,7 @@ def _peak_areas(ts: np.ndarray, xs: np.ndarray, ys: np.ndarray, diameter_px: flo
     if len(xs) == 0:
         return xs, ys, np.zeros(0)
     h, w = ts.shape
-    dy, dx = _disc_offsets(float(diameter_px))
+    dy, dx = _offsets_within(float(diameter_px))
     disc = ts[_clamp(ys[:, None] + dy, 0, h - 1), _clamp(xs[:, None] + dx, 0, w - 1)]
     fl = (floor[xs] if floor.ndim == 1 else floor[ys, xs]) if isinstance(floor, np.ndarray) else floor
     half = fl + 0.5 * (ts[ys, xs] - fl)
