@@ -381,8 +381,9 @@ def decode_workers() -> int:
 
 
 def _track_views(cfg, views, seed_df, d: float, det, tk, progress: bool):
-    """Track every view (:func:`bsipipe.imaging.track.track_view`), frames decoded on a reader
-    thread; returns the per-view tables, the events, the per-view info, each view's first
+    """Track every view (:func:`bsipipe.imaging.track.track_view`), frames decoded ahead on
+    threads (a pool for a folder of frames, :func:`decode_workers`; :func:`prefetched` for
+    every source, so videos and stacks overlap too); returns the per-view tables, the events, the per-view info, each view's first
     frame (for the overlay figure) and the sha256 of every frame file (from the bytes decoded)."""
     from ..imaging.track import track_view
     from ..io.images import count_frames, iter_frames
@@ -474,9 +475,9 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
                          key="diameter_px")
     tk = TrackSettings(**cfg.tracking.model_dump())
 
-    # frames decode on a reader thread (prefetched) while the tracker works: the second core is
-    # taken, and OpenCV's own thread pool on whole-frame morphology would compete with the reader
-    # (measured: about 15 % more CPU for no shorter wall time on two cores)
+    # frames decode on other threads while the tracker works: the other cores are taken, and
+    # OpenCV's own thread pool on whole-frame morphology would compete with the readers
+    # (measured with one reader: about 15 % more CPU for no shorter wall time on two cores)
     import cv2
     cv2_threads = cv2.getNumThreads()
     cv2.setNumThreads(1)

@@ -271,17 +271,24 @@ def read_image(path: str | os.PathLike, *, dtype=None, channel: int | None = Non
 
 # --- sequences -----------------------------------------------------------------------------
 
+def _hash_into(hashes: dict | None, path: Path) -> None:
+    """Store the file's sha256 in ``hashes`` (if given) under ``str(path)``: for the formats
+    whose readers open the file themselves (videos, TIFF, DICOM)."""
+    if hashes is not None:
+        from ..provenance import sha256_file
+        hashes[str(path)] = sha256_file(path)
+
+
 def _iter_file(path: Path, dtype, channel, hashes: dict | None = None
                ) -> Iterator[tuple[str, np.ndarray, float | None, int]]:
     """Frames inside one file: (name, gray image, time_s, frame index within the file); with
     ``hashes``, the file's sha256 is stored in it under ``str(path)``."""
     suf = path.suffix.lower()
-    if hashes is not None and (suf in VIDEO_SUFFIXES or suf in (".tif", ".tiff") or _is_dicom(path)):
-        from ..provenance import sha256_file
-        hashes[str(path)] = sha256_file(path)
     if suf in VIDEO_SUFFIXES:
+        _hash_into(hashes, path)
         yield from _iter_video(path, dtype, channel)
     elif suf in (".tif", ".tiff"):
+        _hash_into(hashes, path)
         tif = _tiff_pages(path)
         with tif:
             n = len(tif.pages)
@@ -292,6 +299,7 @@ def _iter_file(path: Path, dtype, channel, hashes: dict | None = None
                 name = path.name if n == 1 else f"{path.name}#{k}"
                 yield name, _finish(a, dtype, True, channel, path, k if n > 1 else None), None, k
     elif _is_dicom(path):
+        _hash_into(hashes, path)
         ds = _dicom_dataset(path)
         a = _dicom_pixels(ds, path)
         n = a.shape[0]
