@@ -20,9 +20,10 @@ M = TypeVar("M", bound="StrictModel")
 
 
 class StrictModel(BaseModel):
-    """Base for every config: unknown keys are rejected, values are validated on assignment."""
+    """Base for every config: unknown keys and non-finite numbers (inf, nan) are rejected, values
+    are validated on assignment."""
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
 
 def _format_validation_error(err: ValidationError) -> tuple[str, str]:

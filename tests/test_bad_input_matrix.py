@@ -454,6 +454,9 @@ CASES: list[Case] = [
     _c("track-config-wrong-type", "track", "config fps: fast",
        lambda b, d: (["track", p := _config_edit(b.configs["track"], d / "t.yaml", lambda c: c.update(fps="fast"))],
                      p, "key 'fps'")),
+    _c("track-config-fps-inf", "track", "config fps: .inf (a frame rate must be finite)",
+       lambda b, d: (["track", p := _config_edit(b.configs["track"], d / "t.yaml",
+                                                  lambda c: c.update(fps=float("inf")))], p, "key 'fps'")),
     # --- register (bsipipe/io/slicer.py, markers3d.csv)
     _c("register-two-references", "register", "two reference markers (three needed)",
        lambda b, d: (_register_args(b, refs=["R1", "R2"]), b.track / "markers3d.csv", None)),
@@ -719,3 +722,16 @@ def test_matrix_summary(base, tmp_path):
     assert n >= 40
     assert tracebacks == 0 and partial == 0 and named == n and exits == n and stray == 0
     assert all(o.ok for o in outcomes), [o.case.id for o in outcomes if not o.ok]
+
+
+def test_views_of_different_lengths_are_a_warning(base, tmp_path):
+    """Not an error (a video's header count may be an estimate, a file may be missing at the
+    end), but never silent: track.json's warnings name both views' frame counts."""
+    n = len(list((base.synth / "sequence/cam2").iterdir()))
+    cam2 = _copy_dir(base.synth / "sequence/cam2", tmp_path / "cam2", n - 1)
+    out = tmp_path / "out"
+    code, _, err, exc = _invoke(_track_args(base, cam2=cam2) + ["-o", out])
+    assert exc is None and code == 0, err
+    w = [x for x in json.loads((out / "track.json").read_text())["warnings"] if x["code"] == "frame-count-mismatch"]
+    assert len(w) == 1 and w[0]["n_frames"] == {"cam1": n, "cam2": n - 1}
+    assert f"cam1 {n}, cam2 {n - 1}" in w[0]["message"]

@@ -206,3 +206,81 @@ def test_decoding_threads_give_the_same_frames_and_errors(tmp_path, workers):
         for f in iter_frames(tmp_path, workers=workers):
             got.append(f.name)
     assert got == [f"f{k:02d}.png" for k in range(5)]
+
+
+def _series_file(path, img, **tags):
+    """A single-frame DICOM with the given header attributes (InstanceNumber, times...)."""
+    import pydicom
+    _write_dicom(path, img)
+    ds = pydicom.dcmread(str(path))
+    for k, v in tags.items():
+        setattr(ds, k, v)
+    ds.save_as(str(path), enforce_file_format=True)
+
+
+def test_dicom_series_in_instance_order_timed_by_acquisition(tmp_path):
+    # scanners name a series' files by UID: the order is the files' InstanceNumber, and each
+    # frame's time its file's acquisition time (relative to the first)
+    imgs = [_ramp(dtype=np.uint16, seed=s) for s in range(4)]
+    names = ["1.2.840.9.77.dcm", "1.2.840.9.12.dcm", "1.2.840.9.5.dcm", "1.2.840.9.40.dcm"]
+    inst = [3, 1, 4, 2]
+    d = tmp_path / "uid"
+    d.mkdir()
+    for name, k in zip(names, inst):
+        _series_file(d / name, imgs[k - 1], InstanceNumber=k, ContentDate="20261121",
+                     ContentTime=f"1200{10 + k // 2:02d}.{500000 * (k % 2):06d}", FrameTime=500)
+    frames = list(iter_frames(d))
+    assert [int(f.image[0, 0]) for f in frames] == [int(a[0, 0]) for a in imgs]
+    assert [f.time_s for f in frames] == pytest.approx([0.0, 0.5, 1.0, 1.5])
+    # no per-file time: FrameTime (an interval) counts the instances, a gap is a frame missing
+    e = tmp_path / "ft"
+    e.mkdir()
+    for k in (1, 2, 4):
+        _series_file(e / f"x{5 - k}.dcm", imgs[k - 1], InstanceNumber=k, FrameTime=250)
+    assert [f.time_s for f in iter_frames(e)] == pytest.approx([0.0, 0.25, 0.75])
+    # a single-frame file alone states no time of its own (the command's --fps applies)
+    assert next(iter_frames(e / "x1.dcm")).time_s is None
+    # neither: no time, order by name
+    g = tmp_path / "plain"
+    g.mkdir()
+    for k in range(3):
+        _series_file(g / f"p{k}.dcm", imgs[k])
+    assert [f.time_s for f in iter_frames(g)] == [None, None, None]
+
+
+def test_damaged_stacks_videos_and_jpegs_are_refused(tmp_path):
+    # a multi-page TIFF cut short: tifffile logs the bad page offset and drops the pages after
+    stack = np.stack([_ramp(64, 64, seed=s) for s in range(20)])
+    tifffile.imwrite(tmp_path / "s.tif", stack)
+    data = (tmp_path / "s.tif").read_bytes()
+    (tmp_path / "cut.tif").write_bytes(data[: len(data) // 2])
+    with pytest.raises(InputError, match=r"cut.tif.*(damaged or truncated|cannot decode)"):
+        list(iter_frames(tmp_path / "cut.tif"))
+    with pytest.raises(InputError, match="cut.tif"):
+        count_frames(tmp_path / "cut.tif")
+    assert len(list(iter_frames(tmp_path / "s.tif"))) == 20
+    # a video cut short: fewer frames than its header states
+    p = tmp_path / "v.avi"
+    w = cv2.VideoWriter(str(p), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48), False)
+    for k in range(30):
+        w.write(_ramp(48, 64, seed=k))
+    w.release()
+    assert len(list(iter_frames(p))) == 30
+    (tmp_path / "vcut.avi").write_bytes(p.read_bytes()[: p.stat().st_size // 2])
+    with pytest.raises(InputError, match=r"vcut.avi.*ends after \d+ of the 30 frames"):
+        list(iter_frames(tmp_path / "vcut.avi"))
+    # a JPEG overwritten in the middle keeps its start and end markers; the marker pattern
+    # of its image data is broken (libjpeg only warns and returns garbage)
+    rng = np.random.default_rng(1)
+    img = cv2.GaussianBlur(_ramp(256, 256), (0, 0), 2)
+    for name, params in (("plain", []), ("progressive", [cv2.IMWRITE_JPEG_PROGRESSIVE, 1]),
+                         ("restarts", [cv2.IMWRITE_JPEG_RST_INTERVAL, 2])):
+        good = cv2.imencode(".jpg", img, params)[1].tobytes()
+        (tmp_path / f"{name}.jpg").write_bytes(good)
+        assert np.array_equal(read_image(tmp_path / f"{name}.jpg"), cv2.imdecode(np.frombuffer(good, np.uint8), 0))
+        bad = bytearray(good)
+        m = len(bad) // 2
+        bad[m:m + 2000] = rng.integers(0, 256, 2000, dtype=np.uint8).tobytes()
+        (tmp_path / f"{name}_bad.jpg").write_bytes(bytes(bad))
+        with pytest.raises(InputError, match=f"{name}_bad.jpg.*corrupt JPEG data"):
+            read_image(tmp_path / f"{name}_bad.jpg")

@@ -503,6 +503,17 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     fit = None
     cross_view = None
     warnings: list[dict] = []
+    counts = {v: info[v]["n_frames"] for v in views}
+    if len(set(counts.values())) > 1:
+        # e.g. a video cut short within its header's tolerance, or a frame file missing: the
+        # views' frames are paired by index (and time stamps), so the shorter view's end is
+        # where stereo stops
+        from ..quality import warning
+        warnings.append(warning("frame-count-mismatch",
+                                "track: the views hold different numbers of frames ("
+                                + ", ".join(f"{v} {n}" for v, n in counts.items())
+                                + "); frames are paired by index and time, the longer views' last frames "
+                                  "have no partner", log, n_frames=counts))
     if rig is not None:
         from ..imaging.track_effects import close_stereo_loop, match_tracks_across_views, stereo_data
         from ..imaging.triangulate import lowpass_trajectories

@@ -81,7 +81,9 @@ def _is_dicom(path: Path) -> bool:
 
 
 def list_image_files(source: str | os.PathLike) -> list[Path]:
-    """The image files a folder or glob names, sorted by name (:func:`natural_key`).
+    """The image files a folder or glob names, sorted by name (:func:`natural_key`); a DICOM
+    series (every file single-frame DICOM) in InstanceNumber order instead (then acquisition
+    time, then name: :func:`_dicom_series`), as scanners name files by UID.
 
     A folder contributes its files with an image or DICOM suffix (or a DICOM preamble);
     hidden files are skipped.  A glob with no match, or a folder without images, is an
@@ -102,7 +104,145 @@ def list_image_files(source: str | os.PathLike) -> list[Path]:
         files = [p]
     else:
         raise InputError("no such file or folder", path=s)
-    return sorted(files, key=lambda q: natural_key(q.name))
+    files = sorted(files, key=lambda q: natural_key(q.name))
+    series = _dicom_series(files)
+    return list(series.files) if series is not None else files
+
+
+def _source_files(source: str | os.PathLike) -> tuple[list[Path], _Series | None]:
+    """The files of a source in order (:func:`list_image_files`) and, for a DICOM series, its
+    :class:`_Series` (the files' own times)."""
+    p = Path(str(source))
+    if p.is_file():
+        return [p], None
+    files = list_image_files(source)
+    return files, _dicom_series(files)
+
+
+# --- DICOM series --------------------------------------------------------------------------
+
+class _Series(NamedTuple):
+    """A folder (or glob) of single-frame DICOM files in acquisition order, with each
+    file's time in s from the first (None where the files do not say)."""
+
+    files: tuple
+    times: tuple | None
+    order: str          # what the order and the times were taken from, in words
+
+
+def _dicom_seconds(ds, date_kw: str, time_kw: str) -> float | None:
+    """Seconds since an arbitrary epoch from a DICOM DA + TM pair, or from a DT attribute
+    (``date_kw`` None: ``time_kw`` names a DT, ``YYYYMMDDHHMMSS.FFFFFF&ZZXX``)."""
+    import datetime as dt
+    raw_t = str(getattr(ds, time_kw, "") or "").strip()
+    if not raw_t:
+        return None
+    if date_kw is None:                       # DT: date and time in one, an offset ignored
+        m = re.fullmatch(r"(\d{8})(\d{2})?(\d{2})?(\d{2})?(\.\d{1,6})?([+-]\d{4})?", raw_t)
+        if m is None:
+            return None
+        d, hh, mm, ss, frac = m.group(1), m.group(2) or "00", m.group(3) or "00", m.group(4) or "00", m.group(5)
+    else:
+        raw_d = str(getattr(ds, date_kw, "") or "").strip().replace(".", "")
+        d = raw_d if re.fullmatch(r"\d{8}", raw_d) else "19700101"
+        # TM: HHMMSS.FFFFFF (the old ACR-NEMA form HH:MM:SS.frac too)
+        m = re.fullmatch(r"(\d{2}):?(\d{2})?:?(\d{2})?(\.\d{1,6})?", raw_t)
+        if m is None:
+            return None
+        hh, mm, ss, frac = m.group(1), m.group(2) or "00", m.group(3) or "00", m.group(4)
+    try:
+        day = dt.datetime.strptime(d, "%Y%m%d")
+    except ValueError:
+        return None
+    sec = int(hh) * 3600 + int(mm) * 60 + min(int(ss), 60) + (float(frac) if frac else 0.0)
+    return (day - dt.datetime(1970, 1, 1)).total_seconds() + sec
+
+
+def _dicom_series(files: list[Path]) -> _Series | None:
+    """The acquisition order and times of a DICOM series: ``files`` when there are two or
+    more and every one is DICOM (by suffix, or a DICOM preamble where there is no suffix),
+    else None.  Headers only (no pixel data) are read.
+
+    Order: by InstanceNumber when every file has a distinct one, else by acquisition time
+    when every file has a distinct one, else by name (as given).  Times: the first of
+    AcquisitionDateTime, ContentDate + ContentTime, AcquisitionDate + AcquisitionTime that
+    every file has and that increases strictly in that order, relative to the first file;
+    else each file's rank times a FrameTime (ms) that every file states alike; else None."""
+    if len(files) < 2 or not all(f.suffix.lower() in (".dcm", ".dicom") or
+                                 (f.suffix == "" and _is_dicom(f)) for f in files):
+        return None
+    try:
+        stats = [f.stat() for f in files]
+        key = tuple((str(f), st.st_mtime_ns, st.st_size) for f, st in zip(files, stats))
+    except OSError:
+        key = None
+    if key is not None and key in _SERIES_CACHE:
+        return _SERIES_CACHE[key]
+    series = _read_series(files)
+    if key is not None:
+        if len(_SERIES_CACHE) >= 4:
+            _SERIES_CACHE.pop(next(iter(_SERIES_CACHE)))
+        _SERIES_CACHE[key] = series
+    return series
+
+
+#: The last few series read (:func:`_dicom_series`), keyed by each file's path, mtime and size:
+#: a command lists a source more than once (count, first frame, frames).
+_SERIES_CACHE: dict = {}
+
+
+def _read_series(files: list[Path]) -> _Series | None:
+    """:func:`_dicom_series` without the cache."""
+    import pydicom
+    heads = []
+    for f in files:
+        try:
+            ds = pydicom.dcmread(str(f), stop_before_pixels=True)
+        except Exception as e:  # a broken header
+            raise InputError(f"cannot read DICOM: {e}", path=f) from None
+        if int(getattr(ds, "NumberOfFrames", 1) or 1) > 1:
+            return None                     # multi-frame files: each holds its own clip
+        heads.append(ds)
+    n = len(files)
+    stamps = {}
+    for key, date_kw, time_kw in (("AcquisitionDateTime", None, "AcquisitionDateTime"),
+                                  ("ContentDate/ContentTime", "ContentDate", "ContentTime"),
+                                  ("AcquisitionDate/AcquisitionTime", "AcquisitionDate", "AcquisitionTime")):
+        t = [_dicom_seconds(ds, date_kw, time_kw) for ds in heads]
+        if all(v is not None for v in t) and len(set(t)) == n:
+            stamps[key] = np.asarray(t, float)
+    inst = []
+    for ds in heads:
+        try:
+            inst.append(int(ds.InstanceNumber))
+        except (AttributeError, TypeError, ValueError):
+            inst = None
+            break
+    if inst is not None and len(set(inst)) == n:
+        order, how = np.argsort(inst, kind="stable"), "InstanceNumber"
+    elif stamps:
+        key = next(iter(stamps))
+        order, how = np.argsort(stamps[key], kind="stable"), key
+    else:
+        order, how = np.arange(n), "file name"
+    times = None
+    for key, t in stamps.items():
+        t = t[order]
+        if np.all(np.diff(t) > 0):
+            times, how = tuple(float(v) for v in t - t[0]), f"{how}; times from {key}"
+            break
+    if times is None:
+        ft = set()
+        for ds in heads:
+            try:
+                ft.add(float(ds.FrameTime))
+            except (AttributeError, TypeError, ValueError):
+                ft.add(None)
+        if len(ft) == 1 and (v := ft.pop()) is not None and np.isfinite(v) and v > 0:
+            # instance numbers count the frames (a gap is a frame missing); else the rank
+            step = (np.asarray(inst)[order] - inst[order[0]]) if how == "InstanceNumber" else np.arange(n)
+            times, how = tuple(float(i) * v / 1000.0 for i in step), f"{how}; times from FrameTime {v:g} ms"
+    return _Series(tuple(files[i] for i in order), times, how)
 
 
 # --- pixel conversion ---------------------------------------------------------------------
@@ -147,13 +287,79 @@ def _head_and_tail(path: Path, n_head: int, n_tail: int) -> tuple[bytes, bytes]:
         return head, f.read()
 
 
-def _check_jpeg_complete(path: Path) -> None:
-    """libjpeg decodes a truncated JPEG with only a warning; a complete one ends with EOI."""
-    head, tail = _head_and_tail(path, 2, 64)
-    if head != b"\xff\xd8":
+#: Marker codes that may follow a scan's entropy-coded data (JPEG, ITU-T T.81 B.1.1.3, B.2.4):
+#: tables, the next scan, DNL, restart interval, application data, comments, end of image.
+_JPEG_AFTER_SCAN = frozenset([0xC4, 0xCC, 0xD9, 0xDA, 0xDB, 0xDC, 0xDD, 0xFE, *range(0xE0, 0xF0)])
+
+
+def _check_jpeg(data: np.ndarray, path: Path) -> None:
+    """The marker structure of a JPEG file (``data``: its bytes, uint8): libjpeg decodes a
+    truncated or corrupted file with only a warning on stderr and returns an image that is
+    grey or garbage past the damage.  Checked: start of image; every segment's length within
+    the file; in each scan's entropy-coded data, every 0xFF byte stuffed (0xFF00), a fill
+    byte, or a restart marker in sequence (RST0..7 cycling), up to a marker that may follow
+    a scan; an end-of-image marker.  (Damage that keeps to valid byte patterns is not seen;
+    overwritten or lost data almost always breaks them: what libjpeg warns of as "Corrupt
+    JPEG data".)"""
+    b = data
+    n = int(b.size)
+    if n < 4 or b[0] != 0xFF or b[1] != 0xD8:
         raise InputError("not a JPEG file (no start-of-image marker)", path=path)
-    if b"\xff\xd9" not in tail:
-        raise InputError("JPEG file is truncated (no end-of-image marker)", path=path)
+    # every 0xFF and the byte after it, once for the whole file
+    ff = np.flatnonzero(b[:-1] == 0xFF)
+    nb = b[ff + 1]
+    rst = (nb >= 0xD0) & (nb <= 0xD7)
+    marker = ~((nb == 0x00) | (nb == 0xFF) | rst)
+    mpos, mcode = ff[marker], nb[marker]
+    rpos, rcode = ff[rst], nb[rst]
+    pos = 2
+    while True:
+        if pos >= n or b[pos] != 0xFF:
+            raise InputError(f"corrupt JPEG data (no marker at byte {pos})", path=path)
+        while pos < n and b[pos] == 0xFF:
+            pos += 1
+        if pos >= n:
+            break
+        code = int(b[pos])
+        pos += 1
+        if code == 0xD9:
+            return
+        if 0xD0 <= code <= 0xD7 or code == 0x01:
+            continue
+        if pos + 2 > n:
+            break
+        seg_len = (int(b[pos]) << 8) | int(b[pos + 1])
+        if seg_len < 2:
+            raise InputError(f"corrupt JPEG data (marker 0xFF{code:02X} at byte {pos - 2} has length {seg_len})",
+                             path=path)
+        if pos + seg_len > n:
+            break
+        pos += seg_len
+        if code != 0xDA:
+            continue
+        # a scan: its entropy-coded data run to the first 0xFF that is neither stuffed, fill
+        # nor a restart marker
+        i = int(np.searchsorted(mpos, pos))
+        end = int(mpos[i]) if i < len(mpos) else n
+        r0, r1 = np.searchsorted(rpos, [pos, end])
+        if r1 > r0:
+            got = rcode[r0:r1].astype(int) - 0xD0
+            bad = np.flatnonzero(got != np.arange(r1 - r0) % 8)
+            if len(bad):
+                k = int(bad[0])
+                raise InputError(f"corrupt JPEG data (restart marker RST{got[k]} at byte {int(rpos[r0 + k])} "
+                                 f"where RST{k % 8} belongs)", path=path)
+        if i >= len(mpos):
+            break
+        if int(mcode[i]) not in _JPEG_AFTER_SCAN:
+            raise InputError(f"corrupt JPEG data (marker 0xFF{int(mcode[i]):02X} inside the image data at "
+                             f"byte {end})", path=path)
+        pos = end
+    # the structure ran past the end: a file that still ends in EOI was damaged inside
+    if b"\xff\xd9" in b[-64:].tobytes():
+        raise InputError(f"corrupt JPEG data (a segment or the image data at byte {pos} runs past the end of "
+                         f"the file)", path=path)
+    raise InputError("JPEG file is truncated (no end-of-image marker)", path=path)
 
 
 def _check_png_complete(path: Path) -> None:
@@ -168,13 +374,13 @@ def _read_cv2(path: Path, hashes: dict | None = None) -> np.ndarray:
     """Decode an image file with OpenCV; with ``hashes``, the sha256 of the bytes decoded is
     stored under ``str(path)`` (the provenance hash without reading the file twice)."""
     import cv2
-    if path.suffix.lower() in (".jpg", ".jpeg"):
-        _check_jpeg_complete(path)
-    elif path.suffix.lower() == ".png":
+    if path.suffix.lower() == ".png":
         _check_png_complete(path)
     data = np.fromfile(str(path), dtype=np.uint8)
     if data.size == 0:
         raise InputError("file is empty", path=path)
+    if path.suffix.lower() in (".jpg", ".jpeg"):
+        _check_jpeg(data, path)
     if hashes is not None:
         import hashlib
         hashes[str(path)] = hashlib.sha256(data).hexdigest()
@@ -193,7 +399,38 @@ def _tiff_pages(path: Path):
     return tif
 
 
-def _tiff_page_array(page, path: Path, k: int) -> np.ndarray:
+class _TiffErrors(logging.Handler):
+    """Collects what tifffile logs at ERROR while it reads a file: a damaged page list (an
+    offset past the end of a truncated stack, a corrupt tag list) is logged, not raised,
+    and the pages after it silently dropped.  While installed, tifffile's records go here
+    only."""
+
+    def __init__(self):
+        super().__init__(logging.ERROR)
+        self.messages: list[str] = []
+
+    def emit(self, record):
+        self.messages.append(record.getMessage())
+
+    def __enter__(self):
+        self._log = logging.getLogger("tifffile")
+        self._propagate = self._log.propagate
+        self._log.addHandler(self)
+        self._log.propagate = False
+        return self
+
+    def __exit__(self, *exc):
+        self._log.removeHandler(self)
+        self._log.propagate = self._propagate
+        return False
+
+    def check(self, path: Path, frame=None) -> None:
+        if self.messages:
+            msg = re.sub(r"^<tifffile\.\w+[^>]*>\s*", "", self.messages[0])
+            raise InputError(f"TIFF file is damaged or truncated ({msg})", path=path, frame=frame)
+
+
+def _tiff_page_array(page, path: Path, k: int | None) -> np.ndarray:
     try:
         a = page.asarray()
     except Exception as e:  # a damaged strip or an unsupported compression
@@ -234,7 +471,11 @@ def _dicom_pixels(ds, path: Path) -> np.ndarray:
 
 
 def _dicom_frame_times(ds, n: int) -> list[float | None]:
-    """Frame times in s from FrameTimeVector (ms increments) or FrameTime (ms); else None."""
+    """Frame times in s from FrameTimeVector (ms increments) or FrameTime (ms); else None.
+    A single-frame file has no time of its own (a series' times come from
+    :func:`_dicom_series`)."""
+    if n < 2:
+        return [None] * n
     vec = getattr(ds, "FrameTimeVector", None)
     if vec is not None and len(vec) == n:
         return list(np.cumsum(np.asarray(vec, dtype=float)) / 1000.0)
@@ -257,10 +498,12 @@ def read_image(path: str | os.PathLike, *, dtype=None, channel: int | None = Non
     suf = p.suffix.lower()
     if suf in (".tif", ".tiff"):
         tif = _tiff_pages(p)
-        with tif:
+        with tif, _TiffErrors() as errors:
             if not tif.pages:
+                errors.check(p)
                 raise InputError("TIFF file has no pages", path=p)
-            a = _tiff_page_array(tif.pages[0], p, 0)
+            a = _tiff_page_array(tif.pages[0], p, None)
+            errors.check(p)
         return _finish(a, dtype, True, channel, p)
     if _is_dicom(p):
         ds = _dicom_dataset(p)
@@ -290,12 +533,16 @@ def _iter_file(path: Path, dtype, channel, hashes: dict | None = None
     elif suf in (".tif", ".tiff"):
         _hash_into(hashes, path)
         tif = _tiff_pages(path)
-        with tif:
-            n = len(tif.pages)
+        with tif, _TiffErrors() as errors:
+            n = len(tif.pages)                  # indexes every page: a damaged page list is logged
+            errors.check(path)
             if n == 0:
                 raise InputError("TIFF file has no pages", path=path)
             for k in range(n):
-                a = _tiff_page_array(tif.pages[k], path, k)
+                # the page's index within the file names it in a stack; a file of one page
+                # is named by the file alone (in a folder its frame is not page 0)
+                a = _tiff_page_array(tif.pages[k], path, k if n > 1 else None)
+                errors.check(path, k if n > 1 else None)
                 name = path.name if n == 1 else f"{path.name}#{k}"
                 yield name, _finish(a, dtype, True, channel, path, k if n > 1 else None), None, k
     elif _is_dicom(path):
@@ -317,10 +564,20 @@ def _iter_video(path: Path, dtype, channel):
     try:
         if not cap.isOpened():
             raise InputError("cannot open video (corrupt file or unsupported codec)", path=path)
+        stated = cap.get(cv2.CAP_PROP_FRAME_COUNT)
+        stated = int(stated) if stated is not None and np.isfinite(stated) and stated > 0 else None
         k = 0
         while True:
             ok, a = cap.read()
             if not ok or a is None:
+                # a container's frame count can be an estimate (duration x rate): a frame
+                # short is tolerated with a warning; more is a truncated or damaged file
+                if stated is not None and k < stated:
+                    short = stated - k
+                    if short > max(1, stated // 100):
+                        raise InputError(f"video ends after {k} of the {stated} frames its header states "
+                                         f"(truncated or damaged)", path=path, frame=k)
+                    log.warning("%s: %d frame(s) decoded, the header states %d", path, k, stated)
                 break
             t_ms = cap.get(cv2.CAP_PROP_POS_MSEC)
             t = float(t_ms) / 1000.0 if t_ms is not None and np.isfinite(t_ms) and (k == 0 or t_ms > 0) else None
@@ -386,14 +643,14 @@ def iter_frames(source: str | os.PathLike, *, dtype=None, channel: int | None = 
     ``str(path)`` as :func:`bsipipe.provenance.input_hashes` keys them: an image file's from
     the bytes it was decoded from, so a command's provenance need not read its frames again.
     ``workers`` > 1 decodes a folder (or glob) of single-frame image files that many at a
-    time, a few files ahead (same frames, same order, same errors).
+    time, a few files ahead (same frames, same order, same errors).  A DICOM series comes in
+    InstanceNumber order, each frame timed by its file's acquisition time (or FrameTime),
+    see :func:`_dicom_series`.
     """
-    s = str(source)
-    p = Path(s)
-    if p.is_file():
-        files = [p]
-    else:
-        files = list_image_files(s)
+    files, series = _source_files(source)
+    times = dict(zip(series.files, series.times)) if series is not None and series.times is not None else None
+    if series is not None:
+        log.debug("%s: DICOM series of %d files, in the order of %s", source, len(files), series.order)
     shape0 = None
     first = None
     index = 0
@@ -409,7 +666,7 @@ def iter_frames(source: str | os.PathLike, *, dtype=None, channel: int | None = 
             elif img.dtype != dtype0:  # e.g. one 16-bit export among 8-bit frames: grey levels differ
                 raise InputError(f"image has {_depth(img.dtype)} pixels, expected {_depth(dtype0)} like {first}",
                                  path=f, frame=index)
-        yield Frame(index, name, img, t)
+        yield Frame(index, name, img, times[f] if times is not None else t)
         index += 1
 
 
@@ -421,8 +678,7 @@ def _depth(dtype) -> str:
 
 def count_frames(source: str | os.PathLike) -> int:
     """Number of frames in a source without decoding pixels where the format allows."""
-    p = Path(str(source))
-    files = [p] if p.is_file() else list_image_files(source)
+    files, _ = _source_files(source)
     n = 0
     for f in files:
         suf = f.suffix.lower()
@@ -438,8 +694,9 @@ def count_frames(source: str | os.PathLike) -> int:
             n += c if c > 0 else sum(1 for _ in _iter_video(f, None, None))
         elif suf in (".tif", ".tiff"):
             tif = _tiff_pages(f)
-            with tif:
+            with tif, _TiffErrors() as errors:
                 n += len(tif.pages)
+                errors.check(f)
         elif _is_dicom(f):
             import pydicom
             try:
