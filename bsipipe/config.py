@@ -9,21 +9,47 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import Any, Literal, TypeVar, get_args
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, ValidationError, field_validator
 
 from .errors import InputError
 
 M = TypeVar("M", bound="StrictModel")
 
 
+def _takes_bool(annotation) -> bool:
+    """Whether a field's type admits a bool (``bool``, ``Any``, or a union / container with one)."""
+    if annotation is bool or annotation is Any:
+        return True
+    return any(_takes_bool(a) for a in get_args(annotation))
+
+
 class StrictModel(BaseModel):
-    """Base for every config: unknown keys and non-finite numbers (inf, nan) are rejected, values
-    are validated on assignment."""
+    """Base for every config: unknown keys, non-finite numbers (inf, nan) and ``true`` /
+    ``false`` where a number belongs (pydantic's lax mode reads them as 1 and 0: YAML's
+    ``height_mm: true`` would be a 1 mm specimen) are rejected; values are validated on
+    assignment.  (A number written as a string, ``'18'`` or PyYAML's ``1e-3``, is read as
+    the number.)"""
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_bool_for_a_number(cls, v, info):
+        if isinstance(v, bool) and info.field_name in cls.model_fields:
+            ann = cls.model_fields[info.field_name].annotation
+            if not _takes_bool(ann):
+                raise ValueError(f"expected {'a number' if _is_numeric(ann) else 'a value of its type'}, not true/false")
+        return v
+
+
+def _is_numeric(annotation) -> bool:
+    if annotation in (int, float):
+        return True
+    meta = get_args(annotation)
+    return bool(meta) and any(_is_numeric(a) for a in meta)
 
 
 def _format_validation_error(err: ValidationError) -> tuple[str, str]:
@@ -36,6 +62,8 @@ def _format_validation_error(err: ValidationError) -> tuple[str, str]:
         msg = "required key is missing"
     else:
         msg = e.get("msg", "invalid value")
+        if kind == "value_error" and msg.startswith("Value error, "):
+            msg = msg[len("Value error, "):]
         if "input" in e and not isinstance(e["input"], (dict, list)):
             msg += f" (got {e['input']!r})"
     more = len(err.errors()) - 1

@@ -735,3 +735,16 @@ def test_views_of_different_lengths_are_a_warning(base, tmp_path):
     w = [x for x in json.loads((out / "track.json").read_text())["warnings"] if x["code"] == "frame-count-mismatch"]
     assert len(w) == 1 and w[0]["n_frames"] == {"cam1": n, "cam2": n - 1}
     assert f"cam1 {n}, cam2 {n - 1}" in w[0]["message"]
+
+
+@pytest.mark.parametrize("value,ok", [(True, False), (False, False), ("12", True), (float("inf"), False), (12, True)])
+def test_config_numbers_are_numbers(value, ok):
+    """A config number is a finite number: YAML's true/false (lax pydantic: 1 and 0) and .inf
+    are refused naming the key; a number quoted as a string (PyYAML reads ``1e-3`` so) is read."""
+    from bsipipe.config import FitConfig, validate
+    from bsipipe.errors import InputError
+    if ok:
+        assert validate(FitConfig, {"diameter_mm": 18, "height_mm": value}, "c.yaml").height_mm == 12.0
+    else:
+        with pytest.raises(InputError, match=r"c.yaml, key 'height_mm': .*(not true/false|finite)"):
+            validate(FitConfig, {"diameter_mm": 18, "height_mm": value}, "c.yaml")
