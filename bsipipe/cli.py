@@ -95,6 +95,9 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
               help="Fit only up to this nominal strain past contact.")
 @click.option("--bootstrap", type=click.IntRange(min=0), help="Residual-bootstrap resamples checking the CIs.")
 @click.option("--seed", type=int, help="Seed of the bootstrap.")
+@click.option("--contact-mm", "contact_mm", multiple=True, type=float,
+              help="Contact, not detected: displacement (mm) past the log's first sample, positive in compression, "
+                   "at which the platen touched (negative: before the record began). Once for all logs or once per log.")
 @click.option("-o", "--out", required=True, type=click.Path(file_okay=False), help="Output folder.")
 @handle_errors
 def fit_ogden(inputs, out, **opts) -> None:
@@ -186,7 +189,7 @@ def register(ct, xray, references, out, **opts) -> None:
 @click.option("--frame", type=int, help="Compared frame (default: the frame of peak mean marker displacement).")
 @click.option("--marker", "marker_names", multiple=True,
               help="Compare only this marker (repeat; default every marker that is not a reference).")
-@click.option("--fe-result", type=int, help="0-based index of the FE result in the file (default: the last).")
+@click.option("--fe-result", type=int, help="0-based index of the FE result in the file (default: the one at the measured frame's time, from export-fe's deck header or an fe_time_s column; else the largest marker displacement when the frame is the peak; else the last, with a warning).")
 @click.option("--length-unit", type=click.Choice(["mm", "m"]), default="mm", show_default=True,
               help="Length unit of the mesh and the FE displacements.")
 @click.option("--outside-tol-mm", type=click.FloatRange(min=0), default=0.0, show_default=True,

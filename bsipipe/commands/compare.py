@@ -12,7 +12,14 @@ Table 1 (``DIR/table1.csv``), Table 2 (``DIR/table2.csv``), ``DIR/compare.png`` 
 ``DIR/compare.json`` (last; with ``sigma_mm``).  Stage: :mod:`bsipipe.fe.compare`.
 
 The compared frame F defaults to the frame of the largest mean marker displacement (the
-peak of the indentation, where an FE run to the peak ends).
+peak of the indentation), over the markers tracked in every frame or with short gaps
+(:func:`bsipipe.fe.compare.peak_frame_info`).  The compared FE result (a ``.frd``/``.dat``/
+``.rpt``/CSV may hold many) defaults to the one at F's time on the FE clock when both clocks
+are known: ``fe_time_s`` in the marker table (export-fe's ``markers_fe.csv``) or the X-ray time
+of FE time 0 that export-fe states in its deck's header (``** bsipipe: fe_time_zero_xray_s``);
+else, when F is the peak, the FE result of the largest mean model displacement at the markers;
+else the last, with a warning (:func:`bsipipe.fe.compare.choose_fe_result`).  ``compare.json``
+says which frame and which FE result were compared and why.
 """
 
 from __future__ import annotations
@@ -37,7 +44,7 @@ class CompareConfig(StrictModel):
     frame: int | None = Field(None, description="compared frame; default the frame of peak mean displacement")
     markers: list[str] = Field(default_factory=list, description="markers to compare; default every non-reference")
     fe_result: int | None = Field(None, description="0-based index of the FE result (step/frame) in the file; "
-                                                    "default the last")
+                                                    "default the one of the compared frame's time, or the peak")
     length_unit: str = Field("mm", pattern="^(mm|m)$", description="length unit of the mesh and the FE result")
     outside_tol_mm: float = Field(0.0, ge=0.0, description="a marker this close outside the mesh takes the "
                                                            "displacement of the nearest element surface point")
@@ -49,7 +56,7 @@ def read_markers_ct(path) -> pd.DataFrame:
     from .register import read_table
 
     df = read_table(path, MARKERS_CT_COLUMNS, expected="frame,time_s,marker,x_mm,y_mm,z_mm,dx_mm,dy_mm,dz_mm",
-                    optional_numeric=("time_s",))
+                    optional_numeric=("time_s", "fe_time_s"))
     return df.reset_index(drop=True)
 
 
@@ -65,7 +72,8 @@ def run(fe_displacements: str | os.PathLike, mesh: str | os.PathLike, markers: s
     ProcessingError
         No marker inside the mesh with a displacement (exit 1).
     """
-    from ..fe.compare import compare_displacements, markers_at_frame, model_at_points, peak_frame
+    from ..fe.compare import choose_fe_result, compare_displacements, markers_at_frame, peak_frame_info
+    from ..io.abaqus import abaqus_header_values
     from ..io.fe_results import displacements_on_mesh, read_displacements, read_mesh
     from ..provenance import ResultSet, provenance
     from ..report.compare_figure import compare_figure
@@ -73,25 +81,36 @@ def run(fe_displacements: str | os.PathLike, mesh: str | os.PathLike, markers: s
     cfg = validate(CompareConfig, {"frame": frame, "markers": list(marker_names), "fe_result": fe_result,
                                    "length_unit": length_unit, "outside_tol_mm": outside_tol_mm},
                    source="command line")
+    warnings: list[str] = []
     table = read_markers_ct(markers)
     fe_mesh = read_mesh(mesh, length_unit=cfg.length_unit)
-    disp = read_displacements(fe_displacements, choose=cfg.fe_result, length_unit=cfg.length_unit)
-    nodal, match = displacements_on_mesh(fe_mesh, disp)
-    if match["n_matched"] == 0:
-        raise InputError(f"no node of the FE result matches a node of the mesh {mesh} ({match['matched_by']})",
-                         path=fe_displacements)
+    header = abaqus_header_values(mesh) if str(mesh).lower().endswith(".inp") else {}
+    last = read_displacements(fe_displacements, choose=cfg.fe_result, length_unit=cfg.length_unit)
+    if cfg.fe_result is None and last.n_results > 1:
+        results = [read_displacements(fe_displacements, choose=k, length_unit=cfg.length_unit)
+                   for k in range(last.n_results - 1)] + [last]
+    else:
+        results = [last]
 
     frames = sorted(table["frame"].unique())
-    if cfg.frame is None:
-        try:
-            F = peak_frame(table, cfg.markers or None)
-        except ValueError as e:
+    try:
+        peak = peak_frame_info(table, cfg.markers or None)
+    except ValueError as e:
+        if cfg.frame is None:
             raise InputError(str(e), path=markers) from None
+        peak = None
+    if cfg.frame is None:
+        F = peak.frame
+        frame_why = "the peak: " + peak.method
+        if not peak.markers:
+            warnings.append(f"the peak frame {F} is the largest mean over the markers present in each frame: every "
+                            f"marker has a long gap ({'; '.join(f'{k}: {v}' for k, v in peak.left_out.items())})")
     else:
         if cfg.frame not in set(frames):
             raise InputError(f"frame {cfg.frame} is not in the marker table (frames {frames[0]}..{frames[-1]})",
                              path=markers, frame=cfg.frame)
         F = int(cfg.frame)
+        frame_why = "given (--frame)"
     mf = markers_at_frame(table, F, cfg.markers or None)
     unknown = [m for m, why in mf.skipped.items() if why == "not in the markers table"]
     if unknown:
@@ -100,7 +119,28 @@ def run(fe_displacements: str | os.PathLike, mesh: str | os.PathLike, markers: s
         raise ProcessingError(f"no marker with a position and a displacement in frame {F}", path=markers, frame=F)
 
     locator = fe_mesh.locator()
-    u_model, loc = model_at_points(locator, nodal, mf.position_mm, outside_tol_mm=cfg.outside_tol_mm)
+    loc = locator.locate(mf.position_mm, outside_tol_mm=cfg.outside_tol_mm)
+    clock = _fe_clock(table, F, mf.time_s, header, last.format)
+    peak_values = None
+    if len(results) > 1:
+        peak_values = []
+        for r in results:
+            u_r = locator.interpolate(displacements_on_mesh(fe_mesh, r)[0], loc)
+            ok = np.all(np.isfinite(u_r), axis=1)
+            peak_values.append(float(np.linalg.norm(u_r[ok], axis=1).mean()) if ok.any() else np.nan)
+    choice = choose_fe_result(last.n_results, given=cfg.fe_result,
+                              fe_times=[r.time for r in results] if clock["target_fe_time"] is not None else None,
+                              target_fe_time=clock["target_fe_time"], time_tol=clock["time_tol"],
+                              peak_values=peak_values, frame_is_peak=peak is not None and F == peak.frame)
+    if clock["warning"]:
+        warnings.append(clock["warning"])
+    warnings += choice.warnings
+    disp = results[choice.index] if len(results) > 1 else last
+    nodal, match = displacements_on_mesh(fe_mesh, disp)
+    if match["n_matched"] == 0:
+        raise InputError(f"no node of the FE result matches a node of the mesh {mesh} ({match['matched_by']})",
+                         path=fe_displacements)
+    u_model = locator.interpolate(nodal, loc)
     skipped = dict(mf.skipped)
     keep = []
     for i, n in enumerate(mf.names):
@@ -112,7 +152,7 @@ def run(fe_displacements: str | os.PathLike, mesh: str | os.PathLike, markers: s
         else:
             keep.append(i)
     if skipped:
-        log.warning("compare: skipped %s", "; ".join(f"{k}: {v}" for k, v in skipped.items()))
+        warnings.append("skipped " + "; ".join(f"{k}: {v}" for k, v in skipped.items()))
     if not keep:
         raise ProcessingError(f"no marker lies in the mesh with FE displacements in frame {F}: "
                               + "; ".join(f"{k}: {v}" for k, v in skipped.items()), path=mesh, frame=F)
@@ -136,6 +176,21 @@ def run(fe_displacements: str | os.PathLike, mesh: str | os.PathLike, markers: s
         "sigma_axis_mm": res.sigma_axis_mm,
         "n_markers": res.n,
         "frame": F, "time_s": mf.time_s,
+        "frame_choice": {"frame": F, "time_s": mf.time_s, "why": frame_why,
+                         "peak": peak.to_dict() if peak is not None else None},
+        "fe_result": {"index": choice.index, "description": disp.step, "time": disp.time, "why": choice.why,
+                      "n_results": disp.n_results, "measured_frame_fe_time": choice.target_fe_time,
+                      "clock": clock["source"],
+                      "peak_index": (int(np.nanargmax(peak_values)) if peak_values is not None
+                                     and np.isfinite(peak_values).any() else None),
+                      "mean_model_displacement_mm": None if peak_values is None else
+                      [v if np.isfinite(v) else None for v in peak_values]},
+        "coordinate_system": {
+            "frame": header.get("frame", "the CT (FE) frame of registration.json (markers_ct.csv)"),
+            "ct_coordinate_system": header.get("ct_coordinate_system"),
+            "source": ("the deck header written by export-fe" if "ct_coordinate_system" in header else
+                       "not stated in the mesh file; markers and mesh must share the CT frame"),
+            "length": cfg.length_unit},
         "positions": "marker positions in the registration frame (x_mm - dx_mm, ...), where the FE mesh is undeformed",
         "table2": res.table2.to_dict(orient="records"),
         "markers": per_marker,
@@ -146,14 +201,55 @@ def run(fe_displacements: str | os.PathLike, mesh: str | os.PathLike, markers: s
                "element_types": fe_mesh.element_types(), "skipped_element_types": fe_mesh.skipped,
                "node_matching": match, "length_unit": cfg.length_unit},
     }
+    result["warnings"] = warnings
+    for w in warnings:
+        log.warning("compare: %s", w)
     result["provenance"] = provenance(cfg, [fe_displacements, mesh, markers], command="compare")
 
     rs = ResultSet(out, primary="compare.json")
     rs.add_csv("table1.csv", res.table1, float_format="%.12g")
     rs.add_csv("table2.csv", res.table2, float_format="%.12g")
     rs.add_figure("compare.png", compare_figure(res.table1, res.sigma_mm,
-                                                title=f"FE vs markers, frame {F}"))
+                                                title=f"FE vs markers, frame {F}, FE {disp.step}"))
     rs.add_json("compare.json", result)
     rs.commit()
-    log.info("compare: %d markers, sigma %.4f mm", res.n, res.sigma_mm)
+    log.info("compare: %d markers, frame %d, FE result %d (%s), sigma %.4f mm", res.n, F, choice.index, disp.step,
+             res.sigma_mm)
     return result
+
+
+#: FE time units a deck states (``** bsipipe: fe_time_unit``) -> per second.
+_PER_S = {"s": 1.0, "ms": 1000.0}
+
+
+def _fe_clock(table: pd.DataFrame, frame: int, time_s: float | None, header: dict, fe_format: str) -> dict:
+    """Frame ``frame``'s time on the FE clock (``target_fe_time``, None when not known), the
+    tolerance of a match (half the marker table's frame interval, FE time units), where the
+    clock came from (``source``) and a ``warning`` when the FE file's times cannot be used."""
+    out = {"target_fe_time": None, "time_tol": 0.0, "source": None, "warning": None}
+    per_s = _PER_S.get(header.get("fe_time_unit", "s"))
+    if per_s is None:
+        out["warning"] = f"the deck's FE time unit {header['fe_time_unit']!r} is unknown: FE times not matched"
+        return out
+    if fe_format == "abaqus-rpt":
+        out["source"] = "not used: an ABAQUS report gives step times, not the total time the deck's clock counts"
+        return out
+    if "time_s" in table.columns:
+        per_frame = table.groupby("frame")["time_s"].first().dropna().sort_index()
+        if len(per_frame) > 1:
+            out["time_tol"] = 0.5 * float(np.median(np.diff(per_frame.to_numpy(float)))) * per_s
+    rows = table[table["frame"] == frame]
+    fe_t = pd.to_numeric(rows["fe_time_s"], errors="coerce").dropna() if "fe_time_s" in rows.columns else []
+    if len(fe_t):
+        out["target_fe_time"] = float(fe_t.iloc[0]) * per_s
+        out["source"] = "the marker table's fe_time_s"
+    elif "fe_time_zero_xray_s" in header and time_s is not None:
+        try:
+            t0 = float(header["fe_time_zero_xray_s"])
+        except ValueError:
+            out["warning"] = f"the deck's fe_time_zero_xray_s {header['fe_time_zero_xray_s']!r} is not a number"
+            return out
+        out["target_fe_time"] = (time_s - t0) * per_s
+        out["source"] = (f"the marker table's time_s minus the X-ray time of FE time 0 in the deck's header "
+                         f"({t0:.6g} s)")
+    return out

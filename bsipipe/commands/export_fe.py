@@ -160,7 +160,7 @@ def run(config: str | os.PathLike, *, out: str | os.PathLike) -> dict:
     try:
         h = build_handoff(cfg, fit=fit, transform=transform, markers_ct=markers_ct, log=log_record,
                           indentor_xray=indentor_xray, mesh=mesh)
-        files = render_files(h, cfg, sources)
+        files = render_files(h, cfg, sources, coordinate_system=reg.get("ct_coordinate_system"))
     except HandoffError as e:
         where = sources.get(e.source) if e.source else str(config)
         if e.failed_check:
@@ -189,7 +189,7 @@ def run(config: str | os.PathLike, *, out: str | os.PathLike) -> dict:
 def _manifest(h, cfg, files, sources, reg, machine_log, u) -> dict:
     import hashlib
 
-    from ..fe.export import deck_increments
+    from ..fe.export import VISCO_CETOL, deck_increments
 
     step_s, dt_s = deck_increments(h, cfg.deck.max_increment_mm)
     al = h.alignment
@@ -215,8 +215,8 @@ def _manifest(h, cfg, files, sources, reg, machine_log, u) -> dict:
                   for f in files],
         "material": {"model": h.law, "params": h.params, "prony": h.prony, "from": sources["fit"],
                      "bulk_modulus_pa": cfg.deck.bulk_modulus_pa, "density_kg_m3": cfg.deck.density_kg_m3,
-                     "note": ("CalculiX has no *VISCOELASTIC (it warns and solves with the instantaneous "
-                              "moduli); ABAQUS users change *STATIC to *VISCO to include the relaxation")
+                     "note": ("the ABAQUS deck's steps are *VISCO, so ABAQUS includes the relaxation; CalculiX "
+                              "has no *VISCOELASTIC (it warns and solves with the instantaneous moduli)")
                      if h.prony else None},
         "indentor": {
             "diameter_mm": cfg.indentor.diameter_mm,
@@ -262,7 +262,8 @@ def _manifest(h, cfg, files, sources, reg, machine_log, u) -> dict:
                 "*EQUATION; LS-DYNA: springs along their fixed normal), so a spring resists only the normal "
                 "motion and a compressed 0.3 mm spring cannot swing sideways under NLGEOM. With fixed anchors "
                 "CalculiX stopped at 2.4 mm of the demonstration indentation (compressed SPRINGA springs "
-                "buckle). FEBio's linear springs always act along their nodes' line (fixed anchors)."),
+                "buckle). FEBio's linear springs always act along their nodes' line and its skull nodes are "
+                "fixed (fixed anchors, whatever 'anchors' says; a warning when it says sliding)."),
         },
         "mesh": {**{k: v for k, v in h.mesh.info.items()}, "interface_area_mm2": sp.area_mm2,
                  "n_interface_nodes": sp.n_springs, "n_indentor_nodes": int(len(h.mesh.nsets["INDENTOR"])),
@@ -273,8 +274,15 @@ def _manifest(h, cfg, files, sources, reg, machine_log, u) -> dict:
                      "(measured in CalculiX on the twin: 1.7x at 0.5 mm and 1.4x at 4.75 mm depth for the "
                      "default 400-element brick against a 2048-element one); give the specimen's mesh in 'mesh'")},
         "deck": {"units": u.name, "step_time_s": step_s, "max_increment_s": dt_s,
-                 "max_increment_mm": cfg.deck.max_increment_mm, "analysis": "*STEP, NLGEOM; *STATIC",
-                 "indentor": "nodes of INDENTOR prescribed u = depth(t) x axis (bonded flat punch)"},
+                 "max_increment_mm": cfg.deck.max_increment_mm,
+                 "analysis": "*STEP, NLGEOM; " + ("*VISCO, CETOL=%g" % VISCO_CETOL if h.prony else "*STATIC"),
+                 "indentor": "nodes of INDENTOR prescribed u = depth(t) x axis (bonded flat punch)",
+                 "dat_output": "U of INDENTOR and of MARKERS (the nodes of the elements holding the markers, what "
+                               "compare interpolates), total RF of INDENTOR, every increment; U and RF of every "
+                               "node in the .frd",
+                 "markers_in_mesh": h.markers_in_mesh, "markers_outside_mesh": h.markers_outside_mesh,
+                 "n_marker_nodes": int(len(h.marker_nodes)),
+                 "fe_time_zero_xray_s": h.window.time_s + h.clock_offset_s},
         "checks": h.checks,
         "warnings": h.warnings,
         "inputs": sources,

@@ -11,6 +11,13 @@ Per marker *n* and axis: :math:`E_{n,a} = u^{model}_{n,a} - u^{measured}_{n,a}` 
 and :math:`E_n = |\mathbf E_n|`.  Table 2 gives, for x, y and z, the maximum, minimum and mean of
 :math:`|E_{n,a}|` and, for the magnitude, of :math:`E_n` (plus the signed mean, the bias, and the
 RMS); :math:`\sigma = \sqrt{\sum_n E_n^2 / n}` (``sigma_mm``), the seeds' standard error.
+
+Which frame, which FE result: the measured frame defaults to the peak of the indentation
+(:func:`peak_frame_info`: the largest mean displacement over the markers tracked with at
+most short gaps, so one marker lost in one frame does not move it), and the FE result is the
+one at the same time on the FE clock when both clocks are known, else, for the peak frame,
+the FE result of the largest mean model displacement at the compared markers
+(:func:`choose_fe_result`).
 """
 
 from __future__ import annotations
@@ -20,8 +27,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-__all__ = ["MarkerFrame", "markers_at_frame", "peak_frame", "model_at_points", "CompareResult",
-           "compare_displacements"]
+__all__ = ["MarkerFrame", "markers_at_frame", "PeakFrame", "peak_frame_info", "peak_frame", "model_at_points",
+           "FEResultChoice", "choose_fe_result", "CompareResult", "compare_displacements"]
 
 AXES = ("x", "y", "z")
 MARKERS_CT_COLUMNS = ("frame", "marker", "x_mm", "y_mm", "z_mm", "dx_mm", "dy_mm", "dz_mm")
@@ -40,15 +47,84 @@ class MarkerFrame:
     skipped: dict[str, str] = field(default_factory=dict)
 
 
-def peak_frame(table: pd.DataFrame, markers=None) -> int:
+@dataclass
+class PeakFrame:
+    """The peak frame and how it was found: ``markers`` whose displacements picked it,
+    ``filled`` (marker -> frames where it was missing, filled by linear interpolation in
+    frame), ``left_out`` (marker -> why it did not take part) and ``method``."""
+
+    frame: int
+    markers: list[str]
+    filled: dict[str, list[int]]
+    left_out: dict[str, str]
+    method: str
+
+    def to_dict(self) -> dict:
+        return {"frame": self.frame, "markers": self.markers, "filled_frames": self.filled,
+                "left_out": self.left_out, "method": self.method}
+
+
+def _runs(missing: np.ndarray) -> list[tuple[int, int]]:
+    """``(start, stop)`` index ranges of the True runs of ``missing``."""
+    edges = np.diff(np.concatenate([[0], missing.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)))
+
+
+def peak_frame_info(table: pd.DataFrame, markers=None, *, max_gap_frames: int = 2) -> PeakFrame:
     """The frame with the largest mean displacement magnitude over ``markers`` (default: all
-    non-reference markers): where an FE run to the peak of the indentation is compared."""
+    non-reference markers): where an FE run to the peak of the indentation is compared.
+
+    The mean is taken over the same markers in every frame, so a marker lost in the peak
+    frame does not move the peak: the markers found in every frame, and those whose gaps
+    are at most ``max_gap_frames`` consecutive frames long (filled by linear interpolation
+    of the magnitude in frame, held at the ends).  A marker with a longer gap takes no part.
+    Only when no marker qualifies is the mean taken over the markers present in each frame
+    (``method`` says so).
+
+    >>> t = pd.DataFrame({"frame": [0, 0, 1, 1, 2, 2], "marker": list("ABABAB"),
+    ...                   "dx_mm": [0, 0, 1.0, np.nan, 0.5, 3.0], "dy_mm": 0.0, "dz_mm": 0.0})
+    >>> info = peak_frame_info(t)
+    >>> info.frame, info.filled
+    (2, {'B': [1]})
+    """
     t = _select(table, markers)
     mag = np.sqrt(t["dx_mm"] ** 2 + t["dy_mm"] ** 2 + t["dz_mm"] ** 2)
-    per = mag.groupby(t["frame"]).mean().dropna()
-    if per.empty:
+    wide = mag.groupby([t["frame"], t["marker"].astype(str)]).mean().unstack()
+    frames = np.array(sorted(table["frame"].unique()))
+    wide = wide.reindex(frames)
+    if not np.isfinite(wide.to_numpy(float)).any():
         raise ValueError("no frame has a finite displacement")
-    return int(per.idxmax())
+    used, filled, left_out, columns = [], {}, {}, []
+    for m in wide.columns:
+        v = wide[m].to_numpy(float)
+        missing = ~np.isfinite(v)
+        if missing.all():
+            left_out[m] = "never found"
+            continue
+        longest = max((b - a for a, b in _runs(missing)), default=0)
+        if longest > max_gap_frames:
+            left_out[m] = f"missing in {int(missing.sum())} frames, up to {longest} in a row"
+            continue
+        if missing.any():
+            v = v.copy()
+            v[missing] = np.interp(frames[missing], frames[~missing], v[~missing])
+            filled[m] = [int(f) for f in frames[missing]]
+        used.append(m)
+        columns.append(v)
+    if used:
+        mean = np.mean(columns, axis=0)
+        method = (f"largest mean displacement over the markers found in every frame or with gaps of at most "
+                  f"{max_gap_frames} frames (filled by linear interpolation in frame)")
+        return PeakFrame(int(frames[int(np.argmax(mean))]), used, filled, left_out, method)
+    per = wide.mean(axis=1, skipna=True).dropna()
+    method = (f"largest mean displacement over the markers present in each frame (every marker has a gap longer "
+              f"than {max_gap_frames} frames)")
+    return PeakFrame(int(per.idxmax()), [], {}, left_out, method)
+
+
+def peak_frame(table: pd.DataFrame, markers=None) -> int:
+    """The frame of :func:`peak_frame_info`."""
+    return peak_frame_info(table, markers).frame
 
 
 def _select(table: pd.DataFrame, markers):
@@ -73,6 +149,9 @@ def markers_at_frame(table: pd.DataFrame, frame: int, markers=None) -> MarkerFra
                 skipped[m] = "not in the markers table"
             elif m not in set(rows["marker"]):
                 skipped[m] = f"no row in frame {frame}"
+    else:
+        for m in sorted(set(t["marker"].astype(str)) - set(rows["marker"].astype(str))):
+            skipped[m] = f"no row in frame {frame}"
     names, X, d = [], [], []
     for _, r in rows.iterrows():
         xyz = np.array([r["x_mm"], r["y_mm"], r["z_mm"]], dtype=float)
@@ -99,6 +178,70 @@ def model_at_points(locator, nodal_u_mm, points_mm, *, outside_tol_mm: float = 0
     """
     loc = locator.locate(points_mm, outside_tol_mm=outside_tol_mm)
     return locator.interpolate(nodal_u_mm, loc), loc
+
+
+@dataclass
+class FEResultChoice:
+    """The FE result compared with the measured frame: its 0-based ``index``, ``why``, the
+    FE time it should have had (``target_fe_time``, None when the clocks are not tied) and
+    ``warnings`` (the two could not be matched, or only roughly)."""
+
+    index: int
+    why: str
+    target_fe_time: float | None = None
+    warnings: list[str] = field(default_factory=list)
+
+
+def choose_fe_result(n_results: int, *, given: int | None = None, fe_times=None,
+                     target_fe_time: float | None = None, time_tol: float = 0.0,
+                     peak_values=None, frame_is_peak: bool = False) -> FEResultChoice:
+    """Which of ``n_results`` FE results (file order) to set against the measured frame.
+
+    In order: ``given`` (0-based, negative from the end); the only one (with a warning when
+    nothing ties it to a measured frame other than the peak); the FE result whose
+    time ``fe_times`` (n,) is nearest ``target_fe_time`` (the measured frame's time on the FE
+    clock), with a warning when it is more than ``time_tol`` away or outside the results'
+    span; for the peak frame (``frame_is_peak``), the result of the largest ``peak_values``
+    (n,: the mean model displacement at the compared markers); else the last, with a warning.
+
+    >>> choose_fe_result(3, fe_times=[1.0, 2.0, 3.0], target_fe_time=2.1, time_tol=0.25).index
+    1
+    >>> choose_fe_result(3, peak_values=[1.0, 4.0, 0.5], frame_is_peak=True).index
+    1
+    """
+    times = None if fe_times is None else np.asarray(fe_times, dtype=float)
+    timed = times is not None and target_fe_time is not None and bool(np.all(np.isfinite(times)))
+    if given is not None:
+        k, why = int(given) % n_results, "given (--fe-result)"
+    elif n_results == 1:
+        k, why = 0, "the file holds one result"
+    elif timed:
+        k = int(np.argmin(np.abs(times - target_fe_time)))
+        why = f"nearest in time to the measured frame (FE time {target_fe_time:.6g})"
+    elif frame_is_peak and peak_values is not None and np.isfinite(np.asarray(peak_values, dtype=float)).any():
+        k = int(np.nanargmax(np.asarray(peak_values, dtype=float)))
+        why = ("the measured frame is the peak: the FE result of the largest mean model displacement at the "
+               "compared markers")
+    else:
+        return FEResultChoice(n_results - 1, "the last (the FE results cannot be matched to the measured frame)",
+                              target_fe_time,
+                              [f"cannot tell which of the {n_results} FE results belongs to the measured frame "
+                               f"(no FE time tied to the marker clock, and the frame is not the peak); compared "
+                               f"the last: choose one with --fe-result"])
+    warnings = []
+    if n_results == 1 and given is None and not timed and not frame_is_peak:
+        warnings.append("the FE file holds one result without a time tied to the marker clock, and the measured "
+                        "frame is not the peak: nothing shows that they belong together")
+    if timed:
+        gap = abs(float(times[k]) - target_fe_time)
+        if target_fe_time < times.min() - time_tol or target_fe_time > times.max() + time_tol:
+            warnings.append(f"the measured frame's FE time {target_fe_time:.6g} is outside the FE results' "
+                            f"{times.min():.6g}..{times.max():.6g}; compared the FE result at {times[k]:.6g}")
+        elif gap > time_tol:
+            warnings.append(f"the compared FE result (FE time {times[k]:.6g}) is {gap:.3g} from the measured "
+                            f"frame's FE time {target_fe_time:.6g} (tolerance {time_tol:.3g}, half a frame "
+                            f"interval): write FE results more often or choose another frame")
+    return FEResultChoice(k, why, target_fe_time, warnings)
 
 
 @dataclass

@@ -53,8 +53,8 @@ from scipy.optimize import minimize_scalar
 __all__ = ["spring_stiffness_n_per_mm", "LogRecord", "ContactWindow", "contact_window", "Alignment",
            "fit_alignment", "trajectory_difference", "simplify_polyline", "amplitude_from_log",
            "amplitude_from_xray", "force_target", "ramp_speed_mm_per_min", "indentor_centroids",
-           "marker_table", "sliding_anchor_equations", "DifferenceStats", "turning_points", "HandoffError",
-           "Handoff", "build_handoff", "OutputFile", "render_files", "deck_increments"]
+           "marker_table", "marker_element_nodes", "sliding_anchor_equations", "DifferenceStats",
+           "turning_points", "HandoffError", "Handoff", "build_handoff", "OutputFile", "render_files", "deck_increments"]
 
 
 def spring_stiffness_n_per_mm(stiffness_n_per_mm_per_mm2: float, area_mm2: float, n_springs: int) -> float:
@@ -383,6 +383,32 @@ def marker_table(markers_ct: pd.DataFrame, exclude, contact_time_xray_s: float) 
     return out.sort_values(["frame", "marker"], kind="stable").reset_index(drop=True)
 
 
+def marker_element_nodes(mesh, markers: pd.DataFrame, *, outside_tol_mm: float = 1.0
+                         ) -> tuple[np.ndarray, list[str], list[str]]:
+    """The nodes (labels, sorted) of the elements that hold the markers' initial positions
+    (``x0_mm, y0_mm, z0_mm`` of :func:`marker_table`; rows of role ``reference`` or
+    ``xray-only`` are left out), or of the nearest element within ``outside_tol_mm``: what
+    ``bsipipe compare`` interpolates, so the deck prints their displacements.  Returns
+    ``(node labels, markers in the mesh, markers outside it)``."""
+    from ..geometry.shape_functions import PointLocator
+
+    t = markers[~markers["role"].astype(str).isin(["reference", "xray-only"])]
+    t = t[t[["x0_mm", "y0_mm", "z0_mm"]].notna().all(axis=1)]
+    first = t.groupby("marker", sort=True)[["x0_mm", "y0_mm", "z0_mm"]].first()
+    if first.empty:
+        return np.array([], dtype=np.int64), [], []
+    order = np.argsort(mesh.node_ids)
+    corners = {"C3D8": 8, "C3D4": 4}
+    blocks = [(b.base, order[np.searchsorted(mesh.node_ids, np.asarray(b.connectivity)[:, :corners[b.base]],
+                                             sorter=order)]) for b in mesh.blocks]
+    loc = PointLocator(mesh.coords_mm, blocks).locate(first.to_numpy(float), outside_tol_mm=outside_tol_mm)
+    rows = [blocks[loc.block[i]][1][loc.element[i]] for i in np.flatnonzero(loc.found)]
+    nodes = np.unique(mesh.node_ids[np.concatenate(rows)]) if rows else np.array([], dtype=np.int64)
+    names = [str(m) for m in first.index]
+    return (nodes.astype(np.int64), [n for n, ok in zip(names, loc.found) if ok],
+            [n for n, ok in zip(names, loc.found) if not ok])
+
+
 def sliding_anchor_equations(brain_nodes, skull_nodes, normals,
                              tol: float = 1e-13) -> list[list[tuple[int, int, float]]]:
     r"""Linear constraints that make a spring's skull end follow its brain node along the skull:
@@ -445,6 +471,9 @@ class Handoff:
     nominal_area_source: str
     skull_ids: np.ndarray
     anchor_equations: list | None
+    marker_nodes: np.ndarray
+    markers_in_mesh: list[str]
+    markers_outside_mesh: list[str]
     speed_mm_per_min: float
     depth_mm: float
     checks: list[dict]
@@ -658,6 +687,19 @@ def build_handoff(cfg, *, fit: dict, transform, markers_ct: pd.DataFrame, log: L
     skull_ids = skull_base + np.arange(1, springs.n_springs + 1)
     equations = (sliding_anchor_equations(springs.brain_nodes, skull_ids, springs.normals)
                  if cfg.interface.anchors == "sliding" else None)
+    if equations is not None:
+        warnings.append("interface.anchors 'sliding' is modelled in the ABAQUS deck (*EQUATION: the skull end follows "
+                        "its brain node along the skull) and in LS-DYNA (springs along their fixed normal), not in "
+                        "FEBio: the FEBio model's skull nodes are fixed (zero displacement), its springs act along "
+                        "their nodes' line (fixed anchors), so its interface is stiffer sideways")
+    marker_nodes, in_mesh, outside = marker_element_nodes(mesh, markers)
+    if outside:
+        warnings.append(f"marker(s) {', '.join(outside)} lie outside the deck mesh: compare cannot set them against "
+                        f"the FE result")
+    if prony:
+        warnings.append("the material has a Prony series: the ABAQUS deck's steps are *VISCO (ABAQUS relaxes; "
+                        "*STATIC would use the instantaneous moduli only); CalculiX has no *VISCOELASTIC, it warns "
+                        "and solves with the instantaneous moduli, so its result is the elastic response")
 
     return Handoff(law=law, params={k: v for k, v in params.items() if k != "prony"}, prony=list(prony),
                    window=window, axis=axis, rest_tip_mm=rest_tip, contact_point_mm=contact_point,
@@ -666,7 +708,8 @@ def build_handoff(cfg, *, fit: dict, transform, markers_ct: pd.DataFrame, log: L
                    amplitude_time_s=tau, amplitude_depth_mm=depth, amplitude_source=amp_source, target=target,
                    markers=markers, mesh=mesh, springs=springs, spring_nominal_n_per_mm=nominal_k,
                    spring_deck_n_per_mm=deck_k, nominal_area_mm2=nominal_area, nominal_area_source=area_source,
-                   skull_ids=skull_ids, anchor_equations=equations, speed_mm_per_min=speed, depth_mm=depth_max,
+                   skull_ids=skull_ids, anchor_equations=equations, marker_nodes=marker_nodes,
+                   markers_in_mesh=in_mesh, markers_outside_mesh=outside, speed_mm_per_min=speed, depth_mm=depth_max,
                    checks=checks,
                    warnings=warnings, indentor_source=indentor_source, indentor_names=names)
 
@@ -704,11 +747,20 @@ def deck_increments(h: Handoff, max_increment_mm: float) -> tuple[float, float]:
     return step, step / n
 
 
-def render_files(h: Handoff, cfg, sources: dict[str, str | None]) -> list[OutputFile]:
-    """Every file of the hand-off (decks in ``cfg.deck.units``, tables in mm, s, N)."""
+#: ``*VISCO, CETOL=``: ABAQUS keeps the change of the viscous strain rate over an increment below
+#: this, a 0.1 % strain error against the indentation's strains of order 0.1-1.
+VISCO_CETOL = 1e-3
+
+
+def render_files(h: Handoff, cfg, sources: dict[str, str | None], *,
+                 coordinate_system: str | None = None) -> list[OutputFile]:
+    """Every file of the hand-off (decks in ``cfg.deck.units``, tables in mm, s, N).
+
+    ``coordinate_system`` (the CT frame's, e.g. ``LPS``) is stated in the decks' header with
+    the marker-table (X-ray) time of FE time 0, for ``bsipipe compare``."""
     from ..io._fe_material import unit_system
-    from ..io.abaqus import abaqus_amplitude, abaqus_equations, abaqus_indentation_deck, abaqus_material, \
-        abaqus_nodes, abaqus_springa
+    from ..io.abaqus import abaqus_amplitude, abaqus_equations, abaqus_header_line, abaqus_indentation_deck, \
+        abaqus_material, abaqus_nodes, abaqus_springa
     from ..io.febio import febio_indentation_model, febio_material
     from ..io.lsdyna import lsdyna_curve, lsdyna_discrete_springs, lsdyna_indentation_deck, lsdyna_material
 
@@ -751,7 +803,11 @@ def render_files(h: Handoff, cfg, sources: dict[str, str | None]) -> list[Output
         f"interface springs: {cfg.interface.stiffness_n_per_mm_per_mm2:g} N/mm per mm^2 x {sp.area_mm2:.6g} mm^2 / "
         f"{sp.n_springs} springs = {h.spring_deck_n_per_mm:.6g} N/mm each, {cfg.interface.spring_length_mm:g} mm "
         f"long, anchors {cfg.interface.anchors}",
-    ]
+        f"FE time 0 on the marker tables' (X-ray) clock: contact log time + clock offset {h.clock_offset_s:g} s",
+        abaqus_header_line("fe_time_zero_xray_s", repr(float(h.window.time_s + h.clock_offset_s))),
+        abaqus_header_line("fe_time_unit", u.time),
+        abaqus_header_line("frame", "CT (FE) frame of registration.json"),
+    ] + ([abaqus_header_line("ct_coordinate_system", coordinate_system)] if coordinate_system else [])
     mat_sources = [_src("hyperelastic law and parameters (Pa)", src_fit, "model, params"),
                    _src("Prony terms", src_fit, "params.prony"),
                    _src("bulk modulus", src_cfg, "deck.bulk_modulus_pa (null: 1000 x G0)"),
@@ -772,6 +828,9 @@ def render_files(h: Handoff, cfg, sources: dict[str, str | None]) -> list[Output
                         "Extension" if from_log else ", ".join(h.indentor_names)),
                    _src("knot tolerance", src_cfg, "deck.amplitude_tolerance_mm")]
 
+    deck_nsets = {k: mesh.nsets[k] for k in ("INDENTOR", "INTERFACE", "OPENING") if k in mesh.nsets}
+    if len(h.marker_nodes):
+        deck_nsets["MARKERS"] = h.marker_nodes
     files: list[OutputFile] = []
     # ---- ABAQUS / CalculiX
     mat_abq = abaqus_material(h.law, h.params, prony, units=u.name, **mat_kw)
@@ -792,16 +851,18 @@ def render_files(h: Handoff, cfg, sources: dict[str, str | None]) -> list[Output
                             "ABAQUS input", f"length {u.length}, stiffness {u.force}/{u.length}", spring_sources))
     deck = abaqus_indentation_deck(
         comments=comments, node_ids=mesh.node_ids, node_xyz=xyz, blocks=blocks,
-        nsets={k: mesh.nsets[k] for k in ("INDENTOR", "INTERFACE", "OPENING") if k in mesh.nsets},
-        material_card=mat_abq, material_name="BRAIN",
+        nsets=deck_nsets, print_nsets=[k for k in ("MARKERS",) if k in deck_nsets],
+        visco_cetol=VISCO_CETOL if prony else None, material_card=mat_abq, material_name="BRAIN",
         spring_ids=spring_ids, spring_pairs=pairs, skull_ids=h.skull_ids, skull_xyz=skull_xyz,
         spring_stiffness=k_deck, axis=h.axis, amplitude_time=t_deck, amplitude_value=a_deck,
         initial_increment=dt_s * per_s, max_increment=dt_s * per_s, anchor_equations=h.anchor_equations,
         step_ends=t_deck[turning_points(a_deck)], file_frequency=1)
     files.append(OutputFile("abaqus/model.inp", deck,
                             "complete deck: mesh, material, springs to the skull, amplitude, displacement-driven "
-                            "indentor nodes (INDENTOR), *STEP NLGEOM *STATIC, output (U, RF to .frd; indentor U "
-                            "and total RF to .dat); runs in CalculiX (ccx -i model)", "ABAQUS / CalculiX input",
+                            f"indentor nodes (INDENTOR), *STEP NLGEOM {'*VISCO' if prony else '*STATIC'}, output "
+                            "(U, RF to .frd; indentor U and total RF, and U of the nodes of the elements holding "
+                            "the markers (MARKERS), to .dat); runs in CalculiX (ccx -i model)",
+                            "ABAQUS / CalculiX input",
                             f"{u.name}: length {u.length}, time {u.time}, force {u.force}, stress {u.stress}",
                             mat_sources + mesh_sources + pose_sources + spring_sources + amp_sources))
     # ---- LS-DYNA
@@ -834,14 +895,18 @@ def render_files(h: Handoff, cfg, sources: dict[str, str | None]) -> list[Output
     mat_feb = febio_material(h.law, h.params, prony, units=u.name, **mat_kw)
     files.append(OutputFile("febio/material.feb.xml", mat_feb, "<Material> BRAIN from fit.json", "FEBio 4 XML",
                             f"{u.name}", mat_sources))
+    feb_comments = comments + (["interface.anchors 'sliding' is not modelled here: the skull nodes are fixed and "
+                                "the springs act along their nodes' line (fixed anchors); the ABAQUS and LS-DYNA "
+                                "decks slide"] if fixed_dir else [])
     model_feb = febio_indentation_model(
-        comments=comments, node_ids=mesh.node_ids, node_xyz=xyz, blocks=blocks_dyna, material_xml=mat_feb,
+        comments=feb_comments, node_ids=mesh.node_ids, node_xyz=xyz, blocks=blocks_dyna, material_xml=mat_feb,
         anchor_ids=h.skull_ids, anchor_xyz=skull_xyz, spring_pairs=pairs, spring_stiffness=k_deck,
         indentor_nodes=indentor_nodes, axis=h.axis, curve_time=t_deck, curve_value=a_deck,
         time_steps=int(round(step_s / dt_s)), step_size=dt_s * per_s, dt_max=dt_s * per_s)
     files.append(OutputFile("febio/model.feb", model_feb,
                             "complete FEBio 4 model: mesh, material, linear springs to fixed skull nodes (along "
-                            "the line of their nodes), load curve 1, prescribed indentor nodes; not run here",
+                            "the line of their nodes: fixed anchors, whatever interface.anchors says), load curve "
+                            "1, prescribed indentor nodes; not run here",
                             "FEBio 4 XML", f"{u.name}", mat_sources + mesh_sources + pose_sources + spring_sources
                             + amp_sources))
     # ---- tables (mm, s, N)

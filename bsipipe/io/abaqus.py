@@ -22,7 +22,10 @@ lines, ``src/hyperelastics.f``):
   modulus does not relax).  ``*HYPERELASTIC, ..., MODULI=INSTANTANEOUS`` says the
   hyperelastic constants are the instantaneous ones (``MODULI=LONG TERM``, ABAQUS's
   default, that they are :math:`G_\infty = G_0(1 - \sum g_i)`); the card states which.
-  CalculiX ignores ``MODULI`` (with a warning) and has no ``*VISCOELASTIC``.
+  CalculiX ignores ``MODULI`` (with a warning) and has no ``*VISCOELASTIC``.  ABAQUS
+  relaxes only in a ``*VISCO`` step (``*STATIC`` uses the instantaneous moduli), so the
+  hand-off deck's steps are ``*VISCO`` with a Prony series; CalculiX runs ``*VISCO`` as a
+  quasi-static step (verified: the same increments and displacements as ``*STATIC``).
 
 Every card starts with ``**`` comment lines naming the unit system and what each number
 is.  Numbers carry 14 significant digits in at most 20 characters (CalculiX reads
@@ -229,7 +232,8 @@ def abaqus_indentation_deck(*, comments: Sequence[str], node_ids, node_xyz, bloc
                             material_card: str, material_name: str, spring_ids, spring_pairs,
                             skull_ids, skull_xyz, spring_stiffness: float, axis, amplitude_time,
                             amplitude_value, initial_increment: float, max_increment: float,
-                            anchor_equations=None, step_ends=None,
+                            anchor_equations=None, step_ends=None, print_nsets: Sequence[str] = (),
+                            visco_cetol: float | None = None,
                             min_increment: float | None = None, max_increments: int = 10000,
                             file_frequency: int = 1, solid_elset: str = "EBRAIN",
                             indentor_nset: str = "INDENTOR", skull_nset: str = "SKULL",
@@ -254,11 +258,19 @@ def abaqus_indentation_deck(*, comments: Sequence[str], node_ids, node_xyz, bloc
       exactly at its time, so steps ending at the amplitude's turning points make the solver
       reach the deepest indentation, which automatic increments would step over.  The
       amplitude is in total time and the indentor's boundary is restated in every step.
+      With ``visco_cetol`` (a material with a Prony series) the steps are ``*VISCO, CETOL=``
+      instead: ABAQUS's ``*STATIC`` uses the instantaneous moduli only and ignores
+      ``*VISCOELASTIC``; CalculiX runs ``*VISCO`` as a quasi-static step (it drops
+      ``*VISCOELASTIC`` with a warning either way).
       Output: ``U`` and ``RF`` of every node to the ``.frd`` file every ``file_frequency``
-      increments, the indentor's ``U`` and total ``RF`` to the ``.dat`` file at every
-      increment.
+      increments, the indentor's ``U`` and total ``RF`` and the ``U`` of the nodes of
+      ``print_nsets`` (each in ``nsets``: e.g. the nodes of the elements holding the markers,
+      what ``bsipipe compare`` interpolates) to the ``.dat`` file at every increment.
     """
     axis = np.asarray(axis, dtype=float)
+    missing = [n for n in print_nsets if n not in nsets]
+    if missing:
+        raise ValueError(f"print_nsets {missing} are not in nsets")
     t_end = float(np.asarray(amplitude_time, dtype=float)[-1])
     ends = [t_end] if step_ends is None else [float(v) for v in step_ends]
     if abs(ends[-1] - t_end) > 1e-9 * max(1.0, t_end) or np.any(np.diff([0.0, *ends]) <= 0):
@@ -280,6 +292,10 @@ def abaqus_indentation_deck(*, comments: Sequence[str], node_ids, node_xyz, bloc
     else:
         parts.append("** each skull node follows its brain node along the skull: u_s = (I - n n^T) u_b")
         parts.append(abaqus_equations(anchor_equations))
+    if visco_cetol is not None:
+        parts.append("** *VISCO steps: ABAQUS includes the *VISCOELASTIC relaxation (under *STATIC it would use the "
+                     "instantaneous moduli only); CalculiX has no *VISCOELASTIC: it warns, drops the card and "
+                     "solves with the instantaneous moduli")
     start = 0.0
     for k, end in enumerate(ends, start=1):
         period = end - start
@@ -287,18 +303,21 @@ def abaqus_indentation_deck(*, comments: Sequence[str], node_ids, node_xyz, bloc
         dt_max = min(float(max_increment), period)
         # CalculiX raises a smaller minimum to 1e-6 of the step time (with a warning)
         dt_min = min_increment if min_increment is not None else max(dt_max * 1e-4, period * 1e-5)
+        procedure = "*STATIC" if visco_cetol is None else f"*VISCO, CETOL={number(visco_cetol)}"
         parts += [
             f"** step {k}: total time {number(start)} to {number(end)}",
             f"*STEP, NLGEOM, INC={int(max_increments)}",
-            "*STATIC",
+            procedure,
             ", ".join(number(v) for v in (dt0, period, dt_min, dt_max)),
             f"** the indentor's nodes follow u = A(t) * ({', '.join(f'{a:.9g}' for a in axis)})",
             abaqus_boundary(indentor_nset, (1, 2, 3), axis, amplitude="INDENT"),
             f"*NODE FILE, FREQUENCY={int(file_frequency)}", "U, RF",
             f"*NODE PRINT, NSET={indentor_nset}", "U",
             f"*NODE PRINT, NSET={indentor_nset}, TOTALS=ONLY", "RF",
-            "*END STEP",
         ]
+        for name in print_nsets:
+            parts += [f"*NODE PRINT, NSET={name}", "U"]
+        parts.append("*END STEP")
         start = end
     return "\n".join(p.rstrip("\n") for p in parts) + "\n"
 
@@ -364,5 +383,47 @@ def abaqus_node_sets(path) -> dict[str, np.ndarray]:
     return {k: np.unique(np.array(v, dtype=np.int64)) for k, v in sets.items()}
 
 
-__all__ += ["abaqus_amplitude", "abaqus_springa", "abaqus_boundary", "abaqus_equations",
-            "abaqus_indentation_deck", "abaqus_node_sets"]
+#: ``** bsipipe: key = value``: values export-fe states in its decks for later stages (``compare``).
+HEADER_PREFIX = "bsipipe:"
+
+
+def abaqus_header_line(key: str, value) -> str:
+    """The comment text (without ``**``) that :func:`abaqus_header_values` reads back."""
+    return f"{HEADER_PREFIX} {key} = {value}"
+
+
+def abaqus_header_values(path) -> dict[str, str]:
+    """``** bsipipe: key = value`` comment lines before the first keyword of an ABAQUS input
+    file (what export-fe states for ``compare``: the FE clock, the coordinate system); an
+    empty dict for any other deck.
+
+    Raises
+    ------
+    InputError
+        The file cannot be read.
+    """
+    from ..errors import InputError
+
+    out: dict[str, str] = {}
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            for raw in f:
+                line = raw.strip()
+                if not line:
+                    continue
+                if not line.startswith("**"):
+                    break
+                text = line[2:].strip()
+                if text.startswith(HEADER_PREFIX):
+                    key, sep, value = text[len(HEADER_PREFIX):].partition("=")
+                    if sep:
+                        out[key.strip()] = value.strip()
+    except FileNotFoundError:
+        raise InputError("file not found", path=path) from None
+    except OSError as e:
+        raise InputError(f"cannot read the file: {e}", path=path) from None
+    return out
+
+
+__all__ += ["HEADER_PREFIX", "abaqus_header_line", "abaqus_header_values", "abaqus_amplitude", "abaqus_springa",
+            "abaqus_boundary", "abaqus_equations", "abaqus_indentation_deck", "abaqus_node_sets"]
