@@ -218,6 +218,12 @@ def test_rpt_reader_chooses_frames(tmp_path):
     assert first.node_ids.tolist() == [5, 7, 9]
     assert np.allclose(first.u_mm, 0.5 * u, atol=0) and np.allclose(last.u_mm, u, atol=0)
     assert last.time == 1.0 and first.time == 0.5
+    # every result at once (compare's default, to choose by time): the same as one at a time
+    every = read_displacements(p, choose="all")
+    assert len(every) == last.n_results == 2
+    for k, d in enumerate(every):
+        one = read_displacements(p, choose=k)
+        assert d.time == one.time and d.step == one.step and np.array_equal(d.u_mm, one.u_mm)
 
 
 def test_rpt_with_magnitude_and_instance_labels_and_csv_with_times(tmp_path):
@@ -236,6 +242,7 @@ def test_rpt_with_magnitude_and_instance_labels_and_csv_with_times(tmp_path):
     d = read_displacements(q)
     assert d.time == 1.0 and d.n_results == 2 and d.u_mm[1].tolist() == [40, 50, 60]
     assert read_displacements(q, choose=0).u_mm[0].tolist() == [1, 2, 3]
+    assert [x.time for x in read_displacements(q, choose="all")] == [0.5, 1.0]
     m = tmp_path / "u_m.csv"
     m.write_text("node,ux_m,uy_m,uz_m\n1,0.001,0,0\n")
     assert read_displacements(m, length_unit="m").u_mm.tolist() == [[1.0, 0.0, 0.0]]

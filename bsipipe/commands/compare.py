@@ -85,11 +85,11 @@ def run(fe_displacements: str | os.PathLike, mesh: str | os.PathLike, markers: s
     table = read_markers_ct(markers)
     fe_mesh = read_mesh(mesh, length_unit=cfg.length_unit)
     header = abaqus_header_values(mesh) if str(mesh).lower().endswith(".inp") else {}
-    last = read_displacements(fe_displacements, choose=cfg.fe_result, length_unit=cfg.length_unit)
-    if cfg.fe_result is None and last.n_results > 1:
-        results = [read_displacements(fe_displacements, choose=k, length_unit=cfg.length_unit)
-                   for k in range(last.n_results - 1)] + [last]
+    if cfg.fe_result is None:          # every result (the file parsed once), to choose from below
+        results = read_displacements(fe_displacements, choose="all", length_unit=cfg.length_unit)
+        last = results[-1]
     else:
+        last = read_displacements(fe_displacements, choose=cfg.fe_result, length_unit=cfg.length_unit)
         results = [last]
 
     frames = sorted(table["frame"].unique())

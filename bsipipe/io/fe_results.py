@@ -355,14 +355,19 @@ def read_displacement_csv(path, *, choose: int | None = None, length_unit: str =
     factor = _unit_factor(length_unit)
     groups = [(None, df)] if sel is None else list(df.groupby(sel, sort=False))
     labels = [f"{sel} = {k:g}" if sel else "single result" for k, _ in groups]
-    k = _choose(list(range(len(groups))), choose, path, "results")
-    key, g = groups[k]
-    if g["node"].duplicated().any():
-        dup = int(g["node"][g["node"].duplicated()].iloc[0])
-        raise InputError(f"node {dup} appears twice in one result", path=path)
-    u = g[[f"u{a}_{unit}" for a in "xyz"]].to_numpy(float) * factor
-    return NodalDisplacements(str(path), "csv", g["node"].to_numpy(np.int64), u, None, labels[k],
-                              None if sel != "time_s" else float(key), len(groups), labels)
+
+    def build(k: int) -> NodalDisplacements:
+        key, g = groups[k]
+        if g["node"].duplicated().any():
+            dup = int(g["node"][g["node"].duplicated()].iloc[0])
+            raise InputError(f"node {dup} appears twice in one result", path=path)
+        u = g[[f"u{a}_{unit}" for a in "xyz"]].to_numpy(float) * factor
+        return NodalDisplacements(str(path), "csv", g["node"].to_numpy(np.int64), u, None, labels[k],
+                                  None if sel != "time_s" else float(key), len(groups), labels)
+
+    if choose == "all":
+        return [build(k) for k in range(len(groups))]
+    return build(_choose(list(range(len(groups))), choose, path, "results"))
 
 
 _RPT_FRAME = re.compile(r"Step Time\s*=\s*(\S+)")
@@ -449,11 +454,19 @@ def read_abaqus_report(path, *, choose: int | None = None, length_unit: str = "m
             results.append((desc, t, np.array(ids, dtype=np.int64), np.array(vals, dtype=float)))
             continue
         i += 1
-    desc, t, ids, u = _choose(results, choose, path, "U.U1 U.U2 U.U3 tables")
-    if len(np.unique(ids)) != len(ids):
-        raise InputError(f"node labels repeat in the table ({desc}); report unique nodal values", path=path)
-    return NodalDisplacements(str(path), "abaqus-rpt", ids, u * _unit_factor(length_unit), None, desc, t,
-                              len(results), [r[0] for r in results])
+
+    def build(r) -> NodalDisplacements:
+        desc, t, ids, u = r
+        if len(np.unique(ids)) != len(ids):
+            raise InputError(f"node labels repeat in the table ({desc}); report unique nodal values", path=path)
+        return NodalDisplacements(str(path), "abaqus-rpt", ids, u * _unit_factor(length_unit), None, desc, t,
+                                  len(results), [r[0] for r in results])
+
+    what = "U.U1 U.U2 U.U3 tables"
+    if choose == "all":
+        _choose(results, None, path, what)            # none at all: the error
+        return [build(r) for r in results]
+    return build(_choose(results, choose, path, what))
 
 
 def read_ccx_dat(path, *, choose: int | None = None, length_unit: str = "mm") -> NodalDisplacements:
@@ -473,19 +486,27 @@ def read_ccx_dat(path, *, choose: int | None = None, length_unit: str = "mm") ->
     for b in blocks:
         if b.time not in times:
             times.append(b.time)
-    t = _choose(times, choose, path, "displacement blocks (*NODE PRINT ... U)")
-    merged: dict[int, np.ndarray] = {}
-    for b in blocks:
-        if b.time != t:
-            continue
-        if b.values.shape[1] < 3:
-            raise InputError(f"a displacement block of set {b.set_name} has {b.values.shape[1]} columns", path=path)
-        for nid, v in zip(b.ids, b.values[:, :3]):
-            merged[int(nid)] = v
-    ids = np.array(sorted(merged), dtype=np.int64)
-    u = np.array([merged[n] for n in ids], dtype=float)
-    return NodalDisplacements(str(path), "calculix-dat", ids, u * _unit_factor(length_unit), None,
-                              f"time {t:g}", float(t), len(times), [f"time {x:g}" for x in times])
+
+    def build(t: float) -> NodalDisplacements:
+        merged: dict[int, np.ndarray] = {}
+        for b in blocks:
+            if b.time != t:
+                continue
+            if b.values.shape[1] < 3:
+                raise InputError(f"a displacement block of set {b.set_name} has {b.values.shape[1]} columns",
+                                 path=path)
+            for nid, v in zip(b.ids, b.values[:, :3]):
+                merged[int(nid)] = v
+        ids = np.array(sorted(merged), dtype=np.int64)
+        u = np.array([merged[n] for n in ids], dtype=float)
+        return NodalDisplacements(str(path), "calculix-dat", ids, u * _unit_factor(length_unit), None,
+                                  f"time {t:g}", float(t), len(times), [f"time {x:g}" for x in times])
+
+    what = "displacement blocks (*NODE PRINT ... U)"
+    if choose == "all":
+        _choose(times, None, path, what)              # none at all: the error
+        return [build(t) for t in times]
+    return build(_choose(times, choose, path, what))
 
 
 def _frd_values(line: str, start: int, n: int) -> list[float]:
@@ -543,11 +564,19 @@ def read_frd(path, *, choose: int | None = None, length_unit: str = "mm") -> Nod
                 results.append((f"DISP at time {t:g} (line {head_no})", t, np.array(ids, dtype=np.int64),
                                 np.array(vals, dtype=float)))
         i += 1
-    desc, t, ids, u = _choose(results, choose, path, "DISP blocks (*NODE FILE ... U)")
     f = _unit_factor(length_unit)
-    xyz = np.array([coords.get(int(n), [np.nan] * 3) for n in ids], dtype=float) * f if coords else None
-    return NodalDisplacements(str(path), "calculix-frd", ids, u * f, xyz, desc, t, len(results),
-                              [r[0] for r in results])
+
+    def build(r) -> NodalDisplacements:
+        desc, t, ids, u = r
+        xyz = np.array([coords.get(int(n), [np.nan] * 3) for n in ids], dtype=float) * f if coords else None
+        return NodalDisplacements(str(path), "calculix-frd", ids, u * f, xyz, desc, t, len(results),
+                                  [r[0] for r in results])
+
+    what = "DISP blocks (*NODE FILE ... U)"
+    if choose == "all":
+        _choose(results, None, path, what)            # none at all: the error
+        return [build(r) for r in results]
+    return build(_choose(results, choose, path, what))
 
 
 _MESHIO_KEYS = ("u", "displacement", "displacements", "disp", "displacement_mm")
@@ -571,8 +600,10 @@ def read_meshio_displacements(path, *, length_unit: str = "mm") -> NodalDisplace
                      f"found: {', '.join(m.point_data) or 'none'}", path=path)
 
 
-def read_displacements(path, *, choose: int | None = None, length_unit: str = "mm") -> NodalDisplacements:
-    """Nodal displacements from any supported result file (by extension: .csv, .rpt, .dat, .frd, else meshio)."""
+def read_displacements(path, *, choose: int | str | None = None, length_unit: str = "mm"):
+    """Nodal displacements from any supported result file (by extension: .csv, .rpt, .dat, .frd, else meshio).
+    ``choose``: a result's 0-based index (negative from the end; default the last), or ``"all"``
+    for the list of every result, the file parsed once."""
     low = str(path).lower()
     if low.endswith(".csv"):
         return read_displacement_csv(path, choose=choose, length_unit=length_unit)
@@ -582,6 +613,8 @@ def read_displacements(path, *, choose: int | None = None, length_unit: str = "m
         return read_ccx_dat(path, choose=choose, length_unit=length_unit)
     if low.endswith(".frd"):
         return read_frd(path, choose=choose, length_unit=length_unit)
+    if choose == "all":
+        return [read_meshio_displacements(path, length_unit=length_unit)]
     if choose is not None:
         raise InputError("this file holds one result; --fe-result does not apply", path=path)
     return read_meshio_displacements(path, length_unit=length_unit)
