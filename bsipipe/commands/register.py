@@ -12,9 +12,33 @@ which every reference is found): ``x_ct = scale * R @ x_xray + t_mm`` (geometry 
 Coordinates stay in the CT file's own system (LPS or RAS, as the file says).
 
 Writes ``DIR/markers_ct.csv`` (every marker of ``markers3d.csv`` in every frame in the CT
-frame, and its displacement from frame F), ``DIR/loop.md`` and ``DIR/registration.json``
-(last).  Exit 2 when fewer than three references are found in both files (naming which
-and where they are missing).
+frame, and its displacement from frame F, with the CT file's ``coordinate_system``),
+``DIR/loop.md`` and ``DIR/registration.json`` (last, with its ``warnings``).  Exit 2 when
+fewer than three references are found in both files (naming which and where they are
+missing), or when the references coincide or lie on one line in either file.
+
+Warnings (``registration.json`` ``warnings``, also logged; codes):
+
+``references-missing``, ``no-frame-with-all-references``
+    Some requested references are not used (named, with where they are missing).
+``ill-conditioned-references``
+    The references are nearly collinear (lateral spread under :data:`LINE_RATIO_MIN` of their
+    length): the rotation about their line is poorly determined.
+``label-swap``
+    The loop exchanged two CT labels (the ``label-swap`` effect): the file's labels are wrong.
+``large-fre``
+    The final FRE is more than :data:`NOISE_FACTOR` times the tracking noise and no effect
+    explains it (with three references the moving-reference test cannot run).
+``ct-check``
+    Markers localised in CT that are not references lie more than :data:`NOISE_FACTOR` times
+    the larger of the tracking noise and the estimated FLE, and more than
+    :data:`CHECK_FLOOR_MM`, from where the transform puts them: a wrong transform (swapped
+    or moved references), mislabelled markers or brain shift.
+``ambiguous-reference-error``
+    The loop kept ``label-swap`` (or ``moving-reference``) while the other explains the
+    references about as well (within the loop's tie margin).
+``head-motion``, ``tre-not-estimated``
+    The references move together over the trial; no degrees of freedom left for the FLE.
 """
 
 from __future__ import annotations
@@ -33,6 +57,17 @@ from ..errors import InputError, ProcessingError
 log = logging.getLogger(__name__)
 
 MARKERS3D_COLUMNS = ("frame", "marker", "x_mm", "y_mm", "z_mm")
+
+#: A FRE or an implanted-marker check error more than this many times the expected error
+#: (the tracking noise, 3-D RMS; for the check also the estimated FLE) is a warning.
+NOISE_FACTOR = 10.0
+#: ... and an implanted-marker check error is a warning only above this (mm): about a CT voxel,
+#: which bounds how well a marker is localised in CT, and a brain shift between CT and trial of
+#: this size is common.
+CHECK_FLOOR_MM = 0.5
+#: Lateral spread of the references over their length (``line_ratio`` of
+#: :func:`~bsipipe.geometry.registration.point_configuration`) below which they are nearly collinear.
+LINE_RATIO_MIN = 0.1
 
 
 class RegisterConfig(StrictModel):
@@ -119,7 +154,7 @@ def choose_frame(tracks: pd.DataFrame, references: Sequence[str], frame: int | N
     """The registration frame, the references found in it, and why the others are missing.
 
     ``references`` are those present in the CT file.  Default frame: the first in which all
-    are found; failing that, the first with the most found (a warning).
+    are found; failing that, the first with the most found (the caller warns).
     """
     ok = tracks[_found(tracks) & tracks["marker"].isin(list(references))]
     frames = sorted(tracks["frame"].unique())
@@ -132,8 +167,6 @@ def choose_frame(tracks: pd.DataFrame, references: Sequence[str], frame: int | N
         counts = ok.groupby("frame")["marker"].nunique().reindex(frames, fill_value=0)
         best = int(counts.max()) if len(counts) else 0
         chosen = int(counts.index[np.argmax(counts.to_numpy() == best)]) if best else int(frames[0])
-        if best < len(references):
-            log.warning("register: no frame has all %d references; frame %d has %d", len(references), chosen, best)
     here = set(ok.loc[ok["frame"] == chosen, "marker"])
     found = [r for r in references if r in here]
     tracked = set(tracks.loc[_found(tracks), "marker"])
@@ -163,10 +196,13 @@ def _tracks_array(tracks: pd.DataFrame, names: Sequence[str]) -> tuple[np.ndarra
     return frames, time, pos
 
 
-def markers_to_ct(tracks: pd.DataFrame, T, frame: int, roles: dict[str, str]) -> pd.DataFrame:
+def markers_to_ct(tracks: pd.DataFrame, T, frame: int, roles: dict[str, str],
+                  coordinate_system: str | None = None) -> pd.DataFrame:
     """Every row of ``tracks`` mapped to the CT frame, with its displacement from ``frame``.
 
-    ``dx_mm, dy_mm, dz_mm = T(x_f) - T(x_F)`` (NaN where the marker is missing in either frame).
+    ``dx_mm, dy_mm, dz_mm = T(x_f) - T(x_F)`` (NaN where the marker is missing in either frame);
+    ``role`` from ``roles`` (default ``marker``); ``coordinate_system`` is the CT file's
+    (``LPS``, ``RAS``, or ``unstated`` for a plain CSV that does not say).
     """
     xyz = tracks[["x_mm", "y_mm", "z_mm"]].to_numpy(float)
     ct = T.apply(xyz)
@@ -176,7 +212,8 @@ def markers_to_ct(tracks: pd.DataFrame, T, frame: int, roles: dict[str, str]) ->
     out = pd.DataFrame({"frame": tracks["frame"].to_numpy(), "time_s": tracks["time_s"].to_numpy(float),
                         "marker": tracks["marker"].to_numpy(), "x_mm": ct[:, 0], "y_mm": ct[:, 1], "z_mm": ct[:, 2],
                         "dx_mm": d[:, 0], "dy_mm": d[:, 1], "dz_mm": d[:, 2],
-                        "role": [roles.get(m, "marker") for m in tracks["marker"]]})
+                        "role": [roles.get(m, "marker") for m in tracks["marker"]],
+                        "coordinate_system": coordinate_system or "unstated"})
     return out.sort_values(["frame", "marker"], kind="stable").reset_index(drop=True)
 
 
@@ -191,14 +228,18 @@ def _target_positions(tracks: pd.DataFrame, frame: int) -> dict[str, np.ndarray]
     return out
 
 
-def _check_handedness(xray: dict, ct: dict, *, scale: bool, ct_path, system) -> None:
+def _check_handedness(xray: dict, ct: dict, *, scale: bool, ct_path, system, references: Sequence[str] = ()) -> None:
     """Refuse a CT file that matches the X-ray markers only as a mirror image.
 
     A file whose coordinates are mirrored relative to what it states (one axis flipped, a
     left-handed frame) cannot be mapped by a rotation.  Over every marker in both files (at
     least four, not coplanar: a planar set and its mirror image are congruent), the mirrored
     fit ``y ~ s R diag(-1, 1, 1) x + t`` is compared with the rigid one; mirrored RMS below a
-    fifth of the rigid RMS, the rigid RMS above 1 % of the markers' spread, is an InputError.
+    fifth of the rigid RMS, the rigid RMS above 1 % of the markers' spread, is an InputError,
+    unless exchanging the CT labels of two ``references`` fits rigidly as well (within five
+    times the mirrored RMS): four references with two equal pairs of distances (a square's
+    corners) exchanged across a diagonal are a mirror image of themselves, and the loop's
+    ``label-swap`` effect is the one to judge that.
     """
     from ..geometry.registration import fit_similarity, fre
 
@@ -215,10 +256,75 @@ def _check_handedness(xray: dict, ct: dict, *, scale: bool, ct_path, system) -> 
         return
     spread = float(np.sqrt(np.mean(np.sum((y - y.mean(axis=0)) ** 2, axis=1))))
     if e_mirror < 0.2 * e_rigid and e_rigid > 0.01 * spread:
+        refs = [names.index(r) for r in references if r in names]
+        for i, a in enumerate(refs):
+            for b in refs[i + 1:]:
+                ys = y.copy()
+                ys[[a, b]] = ys[[b, a]]
+                try:
+                    e_swap = float(np.sqrt(np.mean(fre(fit_similarity(x, ys, scale=scale), x, ys) ** 2)))
+                except ValueError:
+                    continue
+                if e_swap < 5.0 * e_mirror:
+                    return
         raise InputError(f"the CT markers match the X-ray markers only as a mirror image (RMS {e_mirror:.3g} mm "
                          f"mirrored vs {e_rigid:.3g} mm rigid over {len(names)} markers): the file's coordinates "
                          f"are flipped relative to the coordinate system it states ({system or 'none stated'})",
                          path=ct_path)
+
+
+def _check_configuration(points, *, path, frame: int | None = None, names: Sequence[str], what: str) -> dict:
+    """Refuse references that coincide or lie on one line (InputError naming ``path``); returns
+    :func:`~bsipipe.geometry.registration.point_configuration` of ``points`` (n, 3)."""
+    from ..geometry.registration import point_configuration
+
+    conf = point_configuration(points)
+    if conf["degenerate"] == "coincide":
+        raise InputError(f"the {what} positions of the references {', '.join(names)} coincide (all within "
+                         f"{conf['spread_mm']:.2g} mm of one point): they cannot define a transform",
+                         path=path, frame=frame)
+    if conf["degenerate"] == "collinear":
+        raise InputError(f"the {what} positions of the references {', '.join(names)} lie on one line (lateral "
+                         f"spread {conf['lateral_mm']:.2g} mm over {conf['spread_mm']:.3g} mm): a rotation about "
+                         f"the line is undetermined; use references that span a plane", path=path, frame=frame)
+    return conf
+
+
+def _fre_rms(fit) -> float:
+    """RMS over the used references of a :class:`~bsipipe.geometry.registration_effects.RegistrationFit`'s FRE."""
+    return float(np.sqrt(np.mean(np.sum(fit.residual_vectors[fit.used] ** 2, axis=1))))
+
+
+def _reference_effect_warnings(report, *, has_check: bool) -> list[dict]:
+    """``label-swap`` when the loop exchanged CT labels; ``ambiguous-reference-error`` when the
+    loop kept label-swap or moving-reference with the other within its tie margin."""
+    from ..quality import warning
+
+    out = []
+    for i, step in enumerate(report.steps):
+        if step.effect.name == "label-swap":
+            new = [p for p in step.after.spec.swapped if p not in step.before.spec.swapped]
+            out.append(warning(
+                "label-swap", f"register: the CT labels {', '.join(f'{a} <-> {b}' for a, b in new)} are exchanged "
+                              f"relative to the X-ray markers (loop effect label-swap: FRE RMS "
+                              f"{_fre_rms(step.before.fit):.4g} -> {_fre_rms(step.after.fit):.4g} mm); registered "
+                              f"with the labels corrected: fix the CT file", log, pairs=[list(p) for p in new]))
+        rival = {"label-swap": "moving-reference", "moving-reference": "label-swap"}.get(step.effect.name)
+        runner = step.evidence.get("runner_up") or {}
+        if rival is None or runner.get("effect") != rival:
+            continue
+        mine = (step.evidence.get("outside") or {}).get("delta_bic", 0.0)
+        other = next(((c.get("outside") or {}).get("delta_bic", 0.0) for c in report.tried[i]
+                      if c["effect"] == rival), 0.0)
+        if abs(mine - other) <= report.rule.tie_delta_bic:
+            out.append(warning(
+                "ambiguous-reference-error",
+                f"register: {step.effect.name} and {rival} explain the references about equally (outside evidence "
+                f"{mine:.1f} vs {other:.1f}); the loop kept {step.effect.name}"
+                + ("" if has_check else "; no marker localised in CT besides the references could tell them "
+                                        "apart: check the CT labels and the references by eye"), log,
+                kept=step.effect.name, runner_up=rival))
+    return out
 
 
 def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str], *,
@@ -229,16 +335,20 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
     Raises
     ------
     InputError
-        Unreadable files; fewer than three references in both files (exit 2).
+        Unreadable files; fewer than three references in both files; references that
+        coincide or lie on one line in either file (exit 2).
     ProcessingError
-        Degenerate reference geometry (collinear references) (exit 1).
+        The fit failed on valid input (exit 1).
     """
     from ..geometry import registration as reg
     from ..geometry.registration_effects import (MIN_REFERENCES, RegistrationData, RegistrationSpec,
                                                  close_registration_loop, reference_checks)
     from ..io.slicer import read_markups
     from ..provenance import ResultSet, provenance
+    from ..quality import warning
     from ..report.loop_report import loop_markdown
+
+    warnings: list[dict] = []
 
     cfg = validate(RegisterConfig, {"references": list(references), "frame": frame, "scale": scale,
                                     "loop": loop, "perturbation_draws": perturbation_draws, "seed": seed},
@@ -263,17 +373,44 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
     missing.update({r: f"{why} ({xray})" for r, why in miss_x.items()})
     if len(found) < MIN_REFERENCES:
         detail = "; ".join(f"{r}: {why}" for r, why in missing.items())
+        given = "" if len(cfg.references) >= MIN_REFERENCES else \
+            f"only {len(cfg.references)} given (--reference {' --reference '.join(cfg.references)})"
         raise InputError(f"{len(found)} of {len(cfg.references)} reference markers found in both files "
-                         f"(frame {F}), at least {MIN_REFERENCES} are needed: {detail}", path=xray, frame=F)
+                         f"(frame {F}), at least {MIN_REFERENCES} are needed: "
+                         + "; ".join(x for x in (given, detail) if x), path=xray, frame=F)
     if missing:
-        log.warning("register: references missing: %s", "; ".join(f"{r}: {w}" for r, w in missing.items()))
-    _check_handedness(_target_positions(tracks, F), ct_pos, scale=cfg.scale, ct_path=ct,
-                      system=markups.coordinate_system)
-
+        warnings.append(warning("references-missing", "register: references missing: " + "; ".join(
+            f"{r}: {w}" for r, w in missing.items()), log, references=dict(missing)))
     frames, time, pos = _tracks_array(tracks, found)
     fi = int(np.flatnonzero(frames == F)[0])
-    data = RegistrationData(names=list(found), x_mm=pos[fi].copy(), y_mm=np.array([ct_pos[r] for r in found]),
-                            tracks_mm=pos, time_s=np.where(np.isfinite(time), time, frames.astype(float)))
+    if cfg.frame is None and len(found) < len(in_ct):
+        warnings.append(warning("no-frame-with-all-references",
+                                f"register: no frame has all {len(in_ct)} references found in the CT file; "
+                                f"frame {F} has {len(found)}", log, frame=int(F)))
+    y_refs = np.array([ct_pos[r] for r in found])
+    conf = _check_configuration(y_refs, path=ct, names=found, what="CT")
+    conf_x = _check_configuration(pos[fi], path=xray, frame=F, names=found, what="X-ray")
+    worst = min((conf, "CT"), (conf_x, "X-ray"), key=lambda c: c[0]["line_ratio"])
+    if worst[0]["line_ratio"] < LINE_RATIO_MIN:
+        c = worst[0]
+        warnings.append(warning(
+            "ill-conditioned-references",
+            f"register: the references {', '.join(found)} are nearly collinear in the {worst[1]} file (lateral "
+            f"spread {c['lateral_mm']:.3g} mm over {c['spread_mm']:.3g} mm, ratio {c['line_ratio']:.3g} < "
+            f"{LINE_RATIO_MIN:g}): the rotation about their line is poorly determined (about FLE / "
+            f"{c['lateral_mm']:.3g} mm rad), and so is every point away from it", log,
+            line_ratio=c["line_ratio"], lateral_mm=c["lateral_mm"], spread_mm=c["spread_mm"], file=worst[1]))
+    _check_handedness(_target_positions(tracks, F), ct_pos, scale=cfg.scale, ct_path=ct,
+                      system=markups.coordinate_system, references=found)
+
+    targets = _target_positions(tracks, F)
+    t_names = list(targets)
+    # Markers localised in CT that are not references: an independent check of any transform
+    c_names = [n for n in t_names if n in ct_pos and n not in found]
+    data = RegistrationData(names=list(found), x_mm=pos[fi].copy(), y_mm=y_refs,
+                            tracks_mm=pos, time_s=np.where(np.isfinite(time), time, frames.astype(float)),
+                            check_x_mm=np.array([targets[n] for n in c_names]).reshape(-1, 3),
+                            check_y_mm=np.array([ct_pos[n] for n in c_names]).reshape(-1, 3))
     spec0 = RegistrationSpec(scale=cfg.scale)
     try:
         report = close_registration_loop(data, spec0, loop=cfg.loop)
@@ -286,9 +423,20 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
     fre = np.linalg.norm(fit.residual_vectors, axis=1)
     fre_rms = float(np.sqrt(np.mean(fre[fit.used] ** 2)))
     fle, fle_dof = reg.estimate_fle(fit.residual_vectors[fit.used], scale=spec.scale)
-
-    targets = _target_positions(tracks, F)
-    t_names = list(targets)
+    noise = reg.tracking_noise(pos[:, fit.used])
+    noise_3d = float(np.sqrt(3.0) * noise["sigma_mm"])
+    swaps = [{"references": [a, b], "note": f"the CT file's {a} is the marker the X-ray tracks call {b}, and its "
+                                            f"{b} is their {a}"} for a, b in spec.swapped]
+    warnings += _reference_effect_warnings(report, has_check=bool(c_names))
+    if np.isfinite(noise_3d) and fre_rms > NOISE_FACTOR * noise_3d:
+        why = ("with three references the moving-reference test cannot run, so a moved or mislabelled reference "
+               "cannot be told from the others" if len(used) <= MIN_REFERENCES
+               else "no loop effect explains it" if cfg.loop else "the loop was off (--no-loop)")
+        warnings.append(warning(
+            "large-fre", f"register: FRE RMS {fre_rms:.3g} mm is {fre_rms / noise_3d:.0f} times the references' "
+                         f"tracking noise ({noise_3d:.2g} mm, 3-D RMS) and {why}: a reference moved or is "
+                         f"mislabelled, or the CT localisation is poor; the transform may be wrong", log,
+            fre_rms_mm=fre_rms, tracking_noise_mm=noise_3d, n_used=len(used)))
     t_xyz = np.array([targets[n] for n in t_names]).reshape(-1, 3)
     x_used = data.x_mm[fit.used]
     if np.isfinite(fle) and len(t_names):
@@ -298,29 +446,43 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
     else:
         tre = np.full(len(t_names), np.nan)
         pert = None
-        log.warning("register: no degrees of freedom left to estimate the localisation error; TRE not estimated")
+        warnings.append(warning("tre-not-estimated", "register: no degrees of freedom left to estimate the "
+                                                     "localisation error; TRE not estimated", log))
 
     skull = reg.skull_motion(pos[:, fit.used], fi)
     skull["note"] = ("rigid motion of the used references as a whole relative to the registration frame; the "
                      "declared model has the head fixed relative to the C-arms (one transform for every frame)")
-    noise = [m["sigma_mm"] for m in (data.motion(n) for n in used) if m and np.isfinite(m["sigma_mm"])]
-    if noise and skull["max_translation_mm"] > 5 * np.median(noise):
-        log.warning("register: the references move together by up to %.3g mm (frame %d): the head moved "
-                    "relative to the C-arms; one transform does not serve every frame",
-                    skull["max_translation_mm"], int(frames[skull["frame_of_max"]]))
+    sigmas = [m["sigma_mm"] for m in (data.motion(n) for n in used) if m and np.isfinite(m["sigma_mm"])]
+    if sigmas and skull["max_translation_mm"] > 5 * np.median(sigmas):
+        warnings.append(warning(
+            "head-motion", f"register: the references move together by up to {skull['max_translation_mm']:.3g} mm "
+                           f"(frame {int(frames[skull['frame_of_max']])}): the head moved relative to the C-arms; "
+                           f"one transform does not serve every frame", log,
+            max_translation_mm=skull["max_translation_mm"]))
     skull["frame_of_max"] = int(frames[skull["frame_of_max"]])
 
-    # a tracked point the CT does not hold (e.g. a bead on the indentor) is "xray-only"
-    roles = {n: "marker" if n in ct_pos else "xray-only" for n in t_names}
+    # A tracked point the CT does not hold (e.g. a bead on the indentor) is "xray-only"; an
+    # implanted marker the CT file lists without a position (Slicer: undefined or missing) is
+    # still a marker, it only has no CT check.
+    roles = {n: "marker" if n in ct_pos or n in markups.skipped else "xray-only" for n in t_names}
     for r in found:
         roles[r] = "moved-reference" if r in spec.moved else "reference"
-    table = markers_to_ct(tracks, T, F, roles)
+    table = markers_to_ct(tracks, T, F, roles, markups.coordinate_system)
+    no_ct = {n: markups.skipped[n] for n in t_names if n in markups.skipped and n not in cfg.references}
 
-    # Markers localised in CT that are not references: an independent check of the transform
-    check = {}
-    for n in t_names:
-        if n in ct_pos and n not in found:
-            check[n] = float(np.linalg.norm(T.apply(targets[n]) - ct_pos[n]))
+    check = {n: float(np.linalg.norm(T.apply(targets[n]) - ct_pos[n])) for n in c_names}
+    check_scale = max([v for v in (noise_3d, fle) if np.isfinite(v)], default=float("nan"))
+    check_limit = max(NOISE_FACTOR * check_scale, CHECK_FLOOR_MM) if np.isfinite(check_scale) else CHECK_FLOOR_MM
+    bad = {n: e for n, e in check.items() if e > check_limit}
+    if bad:
+        warnings.append(warning(
+            "ct-check", f"register: {len(bad)} of {len(check)} markers localised in CT lie far from where the "
+                        f"transform puts them ({', '.join(f'{n} {e:.3g} mm' for n, e in bad.items())}; more than "
+                        f"{check_limit:.2g} mm: {NOISE_FACTOR:g} x the larger of the tracking noise and the FLE, "
+                        f"{check_scale:.2g} mm, and at least {CHECK_FLOOR_MM:g} mm): "
+                        f"the transform is wrong (references swapped or moved), those markers are mislabelled, "
+                        f"or the brain shifted since the CT", log,
+            markers=bad, expected_mm=check_scale, limit_mm=check_limit))
 
     result = {
         "R": T.R.tolist(), "t_mm": T.t_mm.tolist(), "scale": float(T.scale),
@@ -332,7 +494,12 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
         "ct_file": {"path": str(ct), "format": markups.format, "version": markups.version,
                     "coordinate_system": markups.coordinate_system or "not stated (coordinates used as written)"},
         "references": {"requested": list(cfg.references), "found": found, "used": used,
-                       "moved": list(spec.moved), "missing": missing},
+                       "moved": list(spec.moved), "swapped": [list(p) for p in spec.swapped], "missing": missing},
+        "label_swaps": swaps,
+        "reference_configuration": {"ct": conf, "xray": conf_x},
+        "tracking_noise": {**noise, "rms_3d_mm": noise_3d,
+                           "note": "per-axis scatter of the used references about their mean positions over "
+                                   "the trial, their common translation taken out"},
         "model": spec.describe(),
         "fre_mm": {n: float(e) for n, e in zip(found, fre)},
         "fre_rms_mm": fre_rms,
@@ -351,10 +518,12 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
         "ct_check_rms_mm": float(np.sqrt(np.mean(np.square(list(check.values()))))) if check else None,
         "ct_check_note": "markers localised in CT that are not references: |T(x) - x_ct| (their own "
                          "localisation errors included)",
+        "ct_position_undefined": no_ct,
         "reference_checks": reference_checks(data, spec),
         "skull_motion": skull,
         "loop": report.to_dict(),
         "n_frames": int(len(frames)),
+        "warnings": warnings,
     }
     result["provenance"] = provenance(cfg, [ct, xray], command="register")
 

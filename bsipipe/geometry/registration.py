@@ -39,7 +39,10 @@ Errors (Fitzpatrick, West & Maurer 1998, IEEE TMI 17:694; Fitzpatrick & West 200
 Robustness to a reference that moved: :func:`leave_one_out` (the held-out prediction of each
 reference by a fit of the others, with an F test) and :func:`reference_motion` (a reference's
 motion over the trial while the others stay still); :func:`skull_motion` reports the
-references moving together (the head moving relative to the C-arms).
+references moving together (the head moving relative to the C-arms).  :func:`tracking_noise`
+is the references' tracking noise over the trial, the scale that FRE and the implanted-marker
+check are judged against; :func:`point_configuration` tells a usable reference configuration
+from a degenerate one (coincident, collinear) and measures how close to collinear it is.
 
 Shapes: points are ``(n, 3)`` arrays in mm; rows with any NaN are the caller's to drop.
 """
@@ -53,7 +56,7 @@ from scipy.spatial.transform import Rotation
 
 __all__ = ["Similarity", "fit_similarity", "n_params", "residual_vectors", "fre", "estimate_fle",
            "tre_fitzpatrick", "tre_linearized", "tre_perturbation", "leave_one_out",
-           "reference_motion", "skull_motion", "rotation_angle_deg"]
+           "reference_motion", "tracking_noise", "skull_motion", "rotation_angle_deg", "point_configuration"]
 
 #: Relative size of the second singular value of the centred points below which they are
 #: taken as collinear (a rotation about their line is then undetermined).
@@ -163,6 +166,41 @@ def fit_similarity(x, y, *, scale: bool = False, weights=None) -> Similarity:
         if not s > 0:
             raise ValueError(f"the fitted scale is not positive ({s:g}): the points do not correspond")
     return Similarity(R, ym - s * R @ xm, s)
+
+
+#: RMS distance from their centroid (mm) below which points are taken to coincide (far below
+#: any localisation precision: a file that repeats one point).
+_COINCIDE_MM = 1e-6
+
+
+def point_configuration(points) -> dict:
+    r"""How well a point set determines a rotation: its spread and how close it is to a line.
+
+    With :math:`s_1 \ge s_2 \ge s_3` the singular values of the centred points (n, 3),
+    ``spread_mm`` :math:`= s_1/\sqrt n` (RMS distance from the centroid), ``lateral_mm``
+    :math:`= s_2/\sqrt n` (RMS distance from the best-fitting line) and ``line_ratio``
+    :math:`= s_2/s_1`.  A rotation about the points' line is determined by the lateral spread
+    only: its error is about FLE / ``lateral_mm`` (rad), so a small ``line_ratio`` (nearly
+    collinear) leaves the transform ill-conditioned.  ``degenerate`` is ``"coincide"`` (spread
+    below 1e-6 mm), ``"collinear"`` (``line_ratio`` at or below the tolerance of
+    :func:`fit_similarity`), or None.
+
+    >>> point_configuration([[0, 0, 0], [1, 0, 0], [2, 0, 0]])["degenerate"]
+    'collinear'
+    >>> c = point_configuration([[0, 0, 0], [10, 0, 0], [0, 10, 0], [10, 10, 0]])
+    >>> c["degenerate"], round(c["line_ratio"], 6)
+    (None, 1.0)
+    """
+    p = _as_points(points, "points")
+    n = len(p)
+    sv = np.linalg.svd(p - p.mean(axis=0), compute_uv=False) if n else np.zeros(3)
+    sv = np.concatenate([sv, np.zeros(3 - len(sv))])
+    spread = float(sv[0] / np.sqrt(max(n, 1)))
+    ratio = float(sv[1] / sv[0]) if sv[0] > 0 else 0.0
+    degenerate = ("coincide" if spread < _COINCIDE_MM
+                  else "collinear" if n < 3 or sv[1] <= _COLLINEAR_RTOL * sv[0] else None)
+    return {"n": int(n), "spread_mm": spread, "lateral_mm": float(sv[1] / np.sqrt(max(n, 1))),
+            "line_ratio": ratio, "degenerate": degenerate}
 
 
 def residual_vectors(T: Similarity, x, y) -> np.ndarray:
@@ -332,6 +370,38 @@ def _hat_basis(t: np.ndarray, n_knots: int) -> np.ndarray:
     return B
 
 
+def _common_scatter(O: np.ndarray) -> tuple[np.ndarray, float, int]:
+    """Points (F, M, 3) found in every frame: their common translation (F, 3) and the residual
+    sum of squares and degrees of freedom, :math:`3(M-1)(F-1)`, of their scatter about their
+    mean positions once it is taken out."""
+    common = O.mean(axis=1) - O.mean(axis=(0, 1))
+    dev = O - O.mean(axis=0) - common[:, None, :]
+    return common, float(np.sum(dev ** 2)), 3 * (O.shape[1] - 1) * (O.shape[0] - 1)
+
+
+def tracking_noise(tracks) -> dict:
+    r"""Per-axis tracking noise :math:`\sigma` (mm) of references that stay fixed to the skull.
+
+    ``tracks`` (F, M, 3), NaN where not found; the frames where all M >= 2 are found are used.
+    Their common translation in each frame (the head slipping) is taken out and
+    :math:`\hat\sigma^2 = \mathrm{RSS}/(3(M-1)(F-1))` is the scatter left about their mean
+    positions, the estimate :func:`reference_motion` uses for its noise.  A reference that moves
+    inflates it.  The expected 3-D RMS of a tracking error is :math:`\sqrt3\,\sigma`.
+    Returns ``{"sigma_mm", "dof", "n_frames", "n_references"}`` (``sigma_mm`` NaN with no
+    degrees of freedom: one frame, or one reference).
+    """
+    tracks = np.asarray(tracks, dtype=float)
+    ok = np.all(np.isfinite(tracks), axis=(1, 2))
+    m = tracks.shape[1]
+    out = {"sigma_mm": float("nan"), "dof": 0, "n_frames": int(ok.sum()), "n_references": int(m)}
+    if m < 2 or ok.sum() < 2:
+        return out
+    _, rss, dof = _common_scatter(tracks[ok])
+    if dof > 0:
+        out.update(sigma_mm=float(np.sqrt(rss / dof)), dof=int(dof))
+    return out
+
+
 def reference_motion(track, others, *, time=None, max_knots: int = 12) -> dict:
     r"""Did a reference move over the trial, while the others stayed still?
 
@@ -378,10 +448,7 @@ def reference_motion(track, others, *, time=None, max_knots: int = 12) -> dict:
     if m < 2 or len(idx) < 3 or np.ptp(tt) <= 0:
         return empty
     O = others[idx]
-    common = O.mean(axis=1) - O.mean(axis=(0, 1))          # (F', 3): the others' common translation
-    dev = O - O.mean(axis=0) - common[:, None, :]
-    dof_o = 3 * (m - 1) * (len(idx) - 1)
-    rss_o = float(np.sum(dev ** 2))
+    common, rss_o, dof_o = _common_scatter(O)
     if dof_o <= 0 or rss_o <= 0:
         return empty
     sigma2 = rss_o / dof_o * (1.0 + 1.0 / m)               # a_f carries the noise of the others' mean

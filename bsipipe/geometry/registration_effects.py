@@ -1,4 +1,4 @@
-r"""The registration stage's loop: its model spec, its fit, and its two effects.
+r"""The registration stage's loop: its model spec, its fit, and its three effects.
 
 Declared model: the references are fixed to the skull, and the X-ray frame maps to the CT
 frame rigidly (``--scale``: with a uniform scale).  The fit uses the references' X-ray
@@ -23,7 +23,32 @@ positions in the registration frame F; its residual is the 3N coordinates of
     at frame F (:func:`~bsipipe.geometry.registration.leave_one_out`: the reference predicted
     by a fit that never saw it), expressed as :math:`\chi^2_3` of equal tail probability
     minus :math:`3 \ln 3N`.  Evidence of no motion is not evidence that the CT position is
-    right, so the outside evidence is never negative (it cannot veto).
+    right, so these two are never negative; (c) the implanted-marker check below.
+``label-swap``
+    Two references whose labels are exchanged between the CT file and the X-ray tracks (a
+    click order mixed up in Slicer or in the tracking seeds).  Signature: the same as a moved
+    reference at the registration frame (two references, or more, fail their held-out
+    prediction) but no motion over the trial; exchanging the two CT labels makes every
+    reference consistent.  No continuous parameter: the loop tries every pair of the
+    references in use and keeps the pair with the strongest outside evidence, then the best
+    fit (reported as ``label_swaps``).  Outside evidence: the held-out evidence the moving-reference effect
+    would claim for the worse of the two, plus :math:`3 \ln 3N` (the three parameters a
+    moved reference costs and a swap does not) minus :math:`2 \ln P` (the choice among the
+    :math:`P = N(N-1)/2` pairs), counted only when after the exchange no reference fails its
+    held-out test (Bonferroni 1 %) and the best moved-reference fit is not significantly
+    better (an F test with the moved reference's three parameters, 1 %); and (c).  With four
+    references at the corners of a square, an exchange across a diagonal and a moved
+    reference fit the references about equally (a turn by 180 degrees about the other
+    diagonal); only (c) tells them apart.
+
+(c) Markers localised in CT that are not references (implanted markers: the same check
+``registration.json`` reports as ``ct_check_mm``) were not fitted, so they judge any
+transform from the outside: with :math:`m` of them at their X-ray positions in frame F,
+:math:`3m \ln(\mathrm{RSS}_{before}/\mathrm{RSS}_{after})` (Gaussian, variance unknown, no
+parameter fitted) is added to the outside evidence of ``moving-reference`` and
+``label-swap``; it can be negative.  This is what tells a label swap of two references at
+opposite corners of a square (which a 180-degree turn about the other diagonal fits as well
+as a moved reference) from a moved reference.
 
 Why the held-out test is outside evidence: with N = 4 references the residual has 12
 numbers, too few for the generic structure tests to see one displaced marker, and the
@@ -43,7 +68,7 @@ from .registration import Similarity, fit_similarity, leave_one_out, n_params, r
 
 __all__ = ["RegistrationSpec", "RegistrationData", "RegistrationFit", "fit_registration",
            "registration_covariates", "registration_effects", "close_registration_loop",
-           "reference_checks"]
+           "reference_checks", "ct_positions"]
 
 #: Fewest references that determine the transform.
 MIN_REFERENCES = 3
@@ -51,13 +76,17 @@ MIN_REFERENCES = 3
 
 @dataclass(frozen=True)
 class RegistrationSpec:
-    """The registration model: ``scale`` on/off, the references taken as moved."""
+    """The registration model: ``scale`` on/off, the references taken as moved, and the pairs
+    of references whose CT labels are exchanged (``swapped``, X-ray names)."""
 
     scale: bool = False
     moved: tuple[str, ...] = ()
+    swapped: tuple[tuple[str, str], ...] = ()
 
     def describe(self) -> str:
         s = "similarity (rigid + uniform scale)" if self.scale else "rigid"
+        if self.swapped:
+            s += "; CT labels " + ", ".join(f"{a} <-> {b}" for a, b in self.swapped) + " exchanged"
         if self.moved:
             s += f"; moved reference{'s' if len(self.moved) > 1 else ''} {', '.join(self.moved)} not used"
         return s
@@ -67,9 +96,11 @@ class RegistrationSpec:
 class RegistrationData:
     """What the fit needs: references at frame F in both frames, and their tracks.
 
-    ``names`` (N,), ``x_mm`` (N, 3) X-ray positions in frame F, ``y_mm`` (N, 3) CT positions,
-    ``tracks_mm`` (n_frames, N, 3) X-ray positions in every frame (NaN where not found),
-    ``time_s`` (n_frames,).
+    ``names`` (N,), ``x_mm`` (N, 3) X-ray positions in frame F, ``y_mm`` (N, 3) CT positions
+    (as the CT file labels them), ``tracks_mm`` (n_frames, N, 3) X-ray positions in every frame
+    (NaN where not found), ``time_s`` (n_frames,); ``check_x_mm``, ``check_y_mm`` (m, 3):
+    markers localised in CT that are not references (X-ray position in frame F, CT position),
+    the outside check of a transform.
     """
 
     names: list[str]
@@ -77,6 +108,8 @@ class RegistrationData:
     y_mm: np.ndarray
     tracks_mm: np.ndarray | None = None
     time_s: np.ndarray | None = None
+    check_x_mm: np.ndarray | None = None
+    check_y_mm: np.ndarray | None = None
     _motion: dict = field(default_factory=dict, repr=False)
 
     def index(self, name: str) -> int:
@@ -109,16 +142,29 @@ class RegistrationFit:
     success: bool = True
 
 
+def ct_positions(data: RegistrationData, spec: RegistrationSpec) -> np.ndarray:
+    """The CT positions (N, 3) of ``data.names`` once the label pairs in ``spec.swapped`` are exchanged."""
+    y = data.y_mm.copy()
+    for a, b in spec.swapped:
+        i, j = data.index(a), data.index(b)
+        y[[i, j]] = y[[j, i]]
+    return y
+
+
 def fit_registration(data: RegistrationData, spec: RegistrationSpec) -> RegistrationFit:
-    """Fit ``spec`` to ``data`` (references in ``spec.moved`` do not constrain the transform)."""
+    """Fit ``spec`` to ``data`` (references in ``spec.moved`` do not constrain the transform;
+    the CT labels in ``spec.swapped`` are exchanged first)."""
     used = np.array([n not in spec.moved for n in data.names])
     if used.sum() < MIN_REFERENCES:
         raise ValueError(f"{int(used.sum())} references left, the transform needs {MIN_REFERENCES}")
-    T = fit_similarity(data.x_mm[used], data.y_mm[used], scale=spec.scale)
-    rv = data.y_mm - T.apply(data.x_mm)
+    y = ct_positions(data, spec)
+    T = fit_similarity(data.x_mm[used], y[used], scale=spec.scale)
+    rv = y - T.apply(data.x_mm)
     res = rv.copy()
     res[~used] = 0.0   # absorbed by the moved reference's free displacement
     params = {"rotation_vector_rad": _rotvec(T.R), "t_mm": T.t_mm.tolist(), "scale": float(T.scale)}
+    if spec.swapped:
+        params["label_swaps"] = [list(p) for p in spec.swapped]
     for n in spec.moved:
         params[f"displacement_{n}_mm"] = rv[data.index(n)].tolist()
     return RegistrationFit(spec, T, used, rv, res.ravel(), params, n_params(spec.scale) + 3 * len(spec.moved))
@@ -140,7 +186,7 @@ def _heldout(data: RegistrationData, spec: RegistrationSpec, name: str) -> dict 
     if name not in used or len(used) < MIN_REFERENCES + 1:
         return None
     idx = [data.index(n) for n in used]
-    loo = leave_one_out(data.x_mm[idx], data.y_mm[idx], scale=spec.scale)[used.index(name)]
+    loo = leave_one_out(data.x_mm[idx], ct_positions(data, spec)[idx], scale=spec.scale)[used.index(name)]
     if not np.isfinite(loo["p"]):
         return None
     n = len(used)
@@ -151,6 +197,27 @@ def _heldout(data: RegistrationData, spec: RegistrationSpec, name: str) -> dict 
 
 #: Delta BIC above which a reference counts as moving over the trial (Kass-Raftery "very strong").
 MOTION_DELTA_BIC = 10.0
+
+
+def _check_evidence(data: RegistrationData, before, after) -> dict | None:
+    """(c) in the module docstring: the markers localised in CT that are not references, before
+    and after an effect (fit results); None when there are none."""
+    if data.check_x_mm is None or not len(data.check_x_mm):
+        return None
+    rss = [float(np.sum((data.check_y_mm - f.transform.apply(data.check_x_mm)) ** 2)) for f in (before, after)]
+    m = len(data.check_x_mm)
+    tiny = np.finfo(float).tiny
+    return {"n_markers": int(m), "rms_before_mm": float(np.sqrt(rss[0] / m)),
+            "rms_after_mm": float(np.sqrt(rss[1] / m)),
+            "delta_bic": float(3 * m * np.log(max(rss[0], tiny) / max(rss[1], tiny)))}
+
+
+def _with_check(ev: dict, check: dict | None) -> dict:
+    if check is not None:
+        ev["check"] = check
+        ev["delta_bic"] = float(ev["delta_bic"] + check["delta_bic"])
+        ev["note"] += "; plus the implanted-marker check (markers localised in CT, not fitted), which can be negative"
+    return ev
 
 
 def _outside_evidence(data: RegistrationData, spec: RegistrationSpec, name: str) -> dict:
@@ -180,10 +247,92 @@ def _candidate(data: RegistrationData, spec: RegistrationSpec) -> str | None:
         return None
     scores = {n: _outside_evidence(data, spec, n)["delta_bic"] for n in used}
     # ties (no evidence anywhere): the largest residual in the current fit
-    T = fit_similarity(data.x_mm[[data.index(n) for n in used]], data.y_mm[[data.index(n) for n in used]],
-                       scale=spec.scale)
-    res = {n: float(np.linalg.norm(data.y_mm[data.index(n)] - T.apply(data.x_mm[data.index(n)]))) for n in used}
+    y = ct_positions(data, spec)
+    idx = [data.index(n) for n in used]
+    T = fit_similarity(data.x_mm[idx], y[idx], scale=spec.scale)
+    res = {n: float(np.linalg.norm(y[data.index(n)] - T.apply(data.x_mm[data.index(n)]))) for n in used}
     return max(used, key=lambda n: (scores[n], res[n]))
+
+
+def _swap_pairs(data: RegistrationData, spec: RegistrationSpec) -> list[tuple[str, str]]:
+    """The pairs of references in use, neither of them already in an exchanged pair."""
+    done = {n for p in spec.swapped for n in p}
+    free = [n for n in data.names if n not in spec.moved and n not in done]
+    return [(a, b) for i, a in enumerate(free) for b in free[i + 1:]]
+
+
+def _swap_candidate(data: RegistrationData, spec: RegistrationSpec) -> tuple[str, str] | None:
+    """The pair the label-swap effect would exchange next: the strongest outside evidence
+    (:func:`_swap_evidence` and the implanted-marker check), ties to the best fit.
+
+    By the references alone, exchanging the labels at both ends of one diagonal of a square
+    fits as well as exchanging those of the other (a turn by 180 degrees about the square's
+    normal); the implanted markers tell them apart."""
+    try:
+        before = fit_registration(data, spec)
+    except ValueError:
+        return None
+    best, best_key = None, None
+    for pair in _swap_pairs(data, spec):
+        try:
+            after = fit_registration(data, replace(spec, swapped=spec.swapped + (pair,)))
+        except ValueError:      # the exchange leaves a degenerate configuration
+            continue
+        ev = _with_check(_swap_evidence(data, spec, pair), _check_evidence(data, before, after))
+        key = (ev["delta_bic"], -float(np.sum(after.residuals ** 2)))
+        if best_key is None or key > best_key:
+            best, best_key = pair, key
+    return best
+
+
+#: Bonferroni-corrected p below which a reference fails its held-out test (as in reference_checks).
+HELDOUT_P = 0.01
+
+
+def _versus_moved(data: RegistrationData, spec: RegistrationSpec, after_spec: RegistrationSpec) -> dict | None:
+    r"""F test of the exchanged labels (``after_spec``) against the best moved-reference fit of ``spec``.
+
+    :math:`F = \frac{(\mathrm{RSS}_{swap} - \mathrm{RSS}_{-k})/3}{\mathrm{RSS}_{-k}/(3(N-1) - p)}`
+    with :math:`\mathrm{RSS}_{-k}` the smallest residual sum of squares with one reference
+    left out: a small p says a moved reference fits significantly better than the exchange
+    despite its three more parameters.  None with fewer than four references in use.
+    """
+    used = [n for n in data.names if n not in spec.moved]
+    if len(used) < MIN_REFERENCES + 1:
+        return None
+    idx = [data.index(n) for n in used]
+    loo = leave_one_out(data.x_mm[idx], ct_positions(data, spec)[idx], scale=spec.scale)
+    rss_moved = min(d["rss_without_mm2"] for d in loo if np.isfinite(d["rss_without_mm2"]))
+    rss_swap = float(np.sum(fit_registration(data, after_spec).residuals ** 2))
+    dof = 3 * (len(used) - 1) - n_params(spec.scale)
+    f = ((rss_swap - rss_moved) / 3.0) / max(rss_moved / dof, np.finfo(float).tiny)
+    return {"rss_swap_mm2": rss_swap, "rss_moved_mm2": float(rss_moved), "f": float(f), "dof": [3, int(dof)],
+            "p": float(stats.f.sf(f, 3, dof)) if f > 0 else 1.0}
+
+
+def _swap_evidence(data: RegistrationData, spec: RegistrationSpec, pair: tuple[str, str]) -> dict:
+    """Outside evidence for exchanging the CT labels of ``pair`` (``label-swap`` in the module docstring)."""
+    n_used = len([n for n in data.names if n not in spec.moved])
+    n_pairs = max(len(_swap_pairs(data, spec)), 1)
+    before = {n: _heldout(data, spec, n) for n in pair}
+    after_spec = replace(spec, swapped=spec.swapped + (pair,))
+    after = {n: _heldout(data, after_spec, n) for n in data.names if n not in spec.moved}
+    failing = sorted(n for n, h in after.items() if h is not None and h["p_bonferroni"] < HELDOUT_P)
+    versus = _versus_moved(data, spec, after_spec)
+    held = [h["delta_bic"] for h in before.values() if h is not None]
+    note = ("held-out evidence of the worse of the two, as moving-reference would claim it, + 3 ln 3N "
+            "(no displacement parameters) - 2 ln P (P pairs to choose from); counted only when after the "
+            "exchange every reference passes its held-out test and a moved reference does not fit "
+            f"significantly better (F test, p >= {HELDOUT_P:g})")
+    d = 0.0
+    if failing:
+        note += f"; not counted: {', '.join(failing)} still fail{'s' if len(failing) == 1 else ''} the held-out test"
+    elif versus is not None and versus["p"] < HELDOUT_P:
+        note += f"; not counted: a moved reference fits significantly better (p = {versus['p']:.2g})"
+    elif held:
+        d = max(0.0, max(held) + 3 * np.log(3 * n_used) - 2 * np.log(n_pairs))
+    return {"delta_bic": float(d), "pair": list(pair), "n_pairs": int(n_pairs), "heldout_before": before,
+            "heldout_failing_after": failing, "versus_moved_reference": versus, "note": note}
 
 
 def registration_effects(data: RegistrationData) -> list[Effect]:
@@ -198,7 +347,19 @@ def registration_effects(data: RegistrationData) -> list[Effect]:
 
     def moved_evidence(before, after) -> dict | None:
         new = [n for n in after.spec.moved if n not in before.spec.moved]
-        return _outside_evidence(data, before.spec, new[0]) if new else None
+        if not new:
+            return None
+        return _with_check(_outside_evidence(data, before.spec, new[0]), _check_evidence(data, before.fit, after.fit))
+
+    def add_swap(spec: RegistrationSpec):
+        pair = _swap_candidate(data, spec)
+        return None if pair is None else replace(spec, swapped=spec.swapped + (pair,))
+
+    def swap_evidence(before, after) -> dict | None:
+        new = [p for p in after.spec.swapped if p not in before.spec.swapped]
+        if not new:
+            return None
+        return _with_check(_swap_evidence(data, before.spec, new[0]), _check_evidence(data, before.fit, after.fit))
 
     return [
         Effect("scale",
@@ -207,6 +368,14 @@ def registration_effects(data: RegistrationData) -> list[Effect]:
                "residual pointing away from (or towards) the references' centroid, growing with the distance "
                "from it: correlation with the centred CT coordinates",
                add_scale, ("scale",)),
+        # before moving-reference: when an exchange makes every reference consistent it is the
+        # simpler explanation (no displacement parameters), and it wins a tie
+        Effect("label-swap",
+               "two references carry each other's labels in the CT file (or in the tracking seeds): a click "
+               "order mixed up",
+               "two (or more) references fail their held-out prediction at the registration frame without "
+               "moving over the trial; exchanging two CT labels makes every reference consistent",
+               add_swap, ("label_swaps",), evidence=swap_evidence),
         Effect("moving-reference",
                "a reference marker on the brain surface rather than the skull moves with the tissue "
                "(or was displaced between the CT and the trial)",
@@ -217,7 +386,8 @@ def registration_effects(data: RegistrationData) -> list[Effect]:
 
 
 def close_registration_loop(data: RegistrationData, spec0: RegistrationSpec, *, loop: bool = True) -> LoopReport:
-    """Fit ``spec0`` and, with ``loop``, try ``scale`` and ``moving-reference`` (bsipipe.loop's rule)."""
+    """Fit ``spec0`` and, with ``loop``, try ``scale``, ``label-swap`` and ``moving-reference``
+    (bsipipe.loop's rule)."""
     cands = registration_effects(data) if loop else []
 
     def fit(spec):
@@ -234,13 +404,16 @@ def reference_checks(data: RegistrationData, spec: RegistrationSpec) -> dict:
     """Per reference: the held-out test at frame F and the motion test over the trial (for the report).
 
     ``flagged`` when the held-out test rejects at Bonferroni-corrected 1 % or the motion test
-    has delta BIC > 10 (very strong).
+    has delta BIC > 10 (very strong).  The held-out test uses every reference, with the CT
+    labels exchanged as ``spec`` has them.
     """
     out = {}
+    swapped = {n: b for a, b in spec.swapped for n, b in ((a, b), (b, a))}
     for n in data.names:
         held = _heldout(data, replace(spec, moved=()), n)
         motion = data.motion(n)
-        flag = bool((held is not None and held["p_bonferroni"] < 0.01)
+        flag = bool((held is not None and held["p_bonferroni"] < HELDOUT_P)
                     or (motion is not None and motion["delta_bic"] > MOTION_DELTA_BIC))
-        out[n] = {"heldout": held, "motion": motion, "flagged": flag, "moved": n in spec.moved}
+        out[n] = {"heldout": held, "motion": motion, "flagged": flag, "moved": n in spec.moved,
+                  "ct_label": swapped.get(n, n)}
     return out

@@ -300,9 +300,10 @@ def read_fcsv(path) -> MarkupPoints:
         else:
             cols = std if version is not None else list(_SLICER3_COLUMNS)
         where = {c: i for i, c in enumerate(cols)}
-        if max(where["x"], where["y"], where["z"], where["label"]) >= len(fields):
-            raise InputError(f"{len(fields)} fields, expected at least {max(where[c] for c in 'xyz') + 1} "
-                             f"({','.join(cols[:where['label'] + 1])})", path=path, line=lineno)
+        need = max(where[c] for c in ("x", "y", "z", "label")) + 1   # up to the last field read
+        if len(fields) < need:
+            raise InputError(f"{len(fields)} fields, expected at least {need} ({','.join(cols[:need])})",
+                             path=path, line=lineno)
         label = fields[where["label"]]
         status = where.get("positionStatus")
         if status is not None and status < len(fields) and fields[status].strip():

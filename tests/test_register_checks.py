@@ -1,0 +1,257 @@
+"""``bsipipe register`` on inputs the declared model does not expect (stress-test findings).
+
+A seeded trial with its truth (four references at the corners of a 20 mm square, the worst
+case: a label swap across a diagonal fits the references as well as a moved reference and a
+turn by 180 degrees; five implanted markers below them): CT labels exchanged between two
+references (the ``label-swap`` effect names and undoes it; the implanted markers decide
+against the moved-reference explanation), a reference exchanged with an implanted marker (a
+``ct-check`` warning), references that coincide or lie on one line (exit 2, naming the file),
+nearly on one line (a conditioning warning), three references one of which moved (a
+``large-fre`` warning), an implanted marker without a CT position (still a marker), and the
+coordinate system written into ``markers_ct.csv``.
+
+Tolerances: CT and tracking noise are 0.005 mm per axis, so a right transform has FRE and
+implanted-marker errors of a few hundredths of a millimetre; a wrong one is off by millimetres.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+from click.testing import CliRunner
+from scipy.spatial.transform import Rotation
+
+from bsipipe.cli import cli
+from bsipipe.geometry.registration import Similarity
+from bsipipe.geometry.registration_effects import RegistrationData, RegistrationSpec, close_registration_loop
+from bsipipe.io.slicer import format_fcsv
+
+REFS = np.array([[10.0, 10.0, 0.5], [-10.0, 10.0, -0.3], [-10.0, -10.0, 0.8], [10.0, -10.0, 0.0]])
+IMPLANTED = np.array([[-3.0, 3.0, -5.0], [2.0, 4.5, -1.5], [5.0, 1.5, -7.5], [-4.0, 7.5, -2.5], [-9.5, 4.0, -6.5]])
+NAMES = ["R1", "R2", "R3", "R4", "M1", "M2", "M3", "M4", "M5"]
+T_TRUE = Similarity(Rotation.from_rotvec([0.2, -0.4, 0.9]).as_matrix(), np.array([-5.0, 10.0, -90.0]), 1.0)
+NOISE_MM = 0.005
+REFS4 = ("R1", "R2", "R3", "R4")
+
+
+def _trial(tmp_path, *, ct_edit=None, xray_edit=None, n_frames=30, seed=0, drop_xyz=(), system="LPS"):
+    """CT markups (``ct.fcsv``) and ``markers3d.csv`` of a trial whose truth is T_TRUE (X-ray -> CT).
+
+    ``ct_edit(dict name -> xyz)`` changes the CT file; ``xray_edit(X (9, 3))`` the X-ray
+    positions of every frame; ``drop_xyz`` lists markers whose CT position is undefined.
+    """
+    rng = np.random.default_rng(seed)
+    X0 = np.vstack([REFS, IMPLANTED])
+    if xray_edit:
+        X0 = xray_edit(X0.copy())
+    ct = dict(zip(NAMES, T_TRUE.apply(X0) + rng.normal(0, NOISE_MM, X0.shape)))
+    if ct_edit:
+        ct_edit(ct)
+    text = format_fcsv(list(ct), [ct[n] for n in ct], system)
+    lines = text.splitlines()
+    for i, ln in enumerate(lines):   # Slicer 5 rows: positionStatus 0 (undefined) where asked
+        if not ln.startswith("#"):
+            label = ln.split(",")[11]
+            lines[i] = ln + (",0,0" if label in drop_xyz else ",2,0")
+    (tmp_path / "ct.fcsv").write_text("\n".join(lines) + "\n")
+    ramp = np.clip((np.arange(n_frames) - 5) / 10.0, 0, 1)
+    rows = []
+    for f in range(n_frames):
+        x = X0.copy()
+        x[4:] += ramp[f] * np.array([0.1, -0.1, -0.8])           # the tissue moves, the references do not
+        x += rng.normal(0, NOISE_MM, x.shape)
+        for j, n in enumerate(NAMES):
+            rows.append({"frame": f, "time_s": f / 30.0, "marker": n, "x_mm": x[j, 0], "y_mm": x[j, 1],
+                         "z_mm": x[j, 2]})
+    pd.DataFrame(rows).to_csv(tmp_path / "markers3d.csv", index=False, float_format="%.17g")
+
+
+def _register(tmp_path, refs=REFS4, *extra):
+    args = ["register", "--ct", str(tmp_path / "ct.fcsv"), "--xray", str(tmp_path / "markers3d.csv")]
+    for r in refs:
+        args += ["--reference", r]
+    r = CliRunner().invoke(cli, args + ["--perturbation-draws", "0", *extra, "-o", str(tmp_path / "out")])
+    res = json.loads((tmp_path / "out" / "registration.json").read_text()) if r.exit_code == 0 else None
+    return r, res
+
+
+def _swap(a, b):
+    def edit(ct):
+        ct[a], ct[b] = ct[b].copy(), ct[a].copy()
+    return edit
+
+
+def _codes(res):
+    return [w["code"] for w in res["warnings"]]
+
+
+def test_clean_trial_has_an_empty_warnings_list(tmp_path):
+    _trial(tmp_path)
+    r, res = _register(tmp_path)
+    assert r.exit_code == 0, r.output
+    assert res["warnings"] == [] and res["loop"]["steps"] == []
+    assert res["fre_rms_mm"] < 5 * np.sqrt(3) * NOISE_MM and res["ct_check_rms_mm"] < 0.05
+    # the tracking noise the warnings are judged against: sigma per axis, 29 frames x 4 references
+    assert res["tracking_noise"]["sigma_mm"] == pytest.approx(NOISE_MM, rel=0.2)
+
+
+@pytest.mark.parametrize("pair", [("R1", "R3"), ("R1", "R2")])
+def test_label_swap_is_named_and_undone(tmp_path, pair):
+    """R1 <-> R3 (across the diagonal: before, the loop took R3 as moved and turned the transform
+    by 180 degrees, implanted markers off by 10 mm) and R1 <-> R2 (along a side)."""
+    _trial(tmp_path, ct_edit=_swap(*pair))
+    r, res = _register(tmp_path)
+    assert r.exit_code == 0, r.output
+    steps = res["loop"]["steps"]
+    assert [s["effect"] for s in steps] == ["label-swap"]
+    assert steps[0]["effect_params"]["label_swaps"] == [list(pair)]
+    assert steps[0]["rmse_mm_before"] > 100 * steps[0]["rmse_mm_after"]
+    assert res["references"]["swapped"] == [list(pair)] and res["references"]["used"] == list(REFS4)
+    assert res["references"]["moved"] == [] and res["label_swaps"][0]["references"] == list(pair)
+    # the transform is the true one: FRE at the noise, implanted markers where the CT has them
+    assert res["fre_rms_mm"] < 5 * np.sqrt(3) * NOISE_MM and res["ct_check_rms_mm"] < 0.05
+    assert np.abs(np.array(res["R"]) - T_TRUE.R).max() < 1e-3
+    assert "label-swap" in _codes(res) and "ct-check" not in _codes(res)
+    assert not any(c["flagged"] for c in res["reference_checks"].values())
+    assert res["reference_checks"][pair[0]]["ct_label"] == pair[1]
+
+
+def test_moving_reference_still_wins_over_a_swap_that_does_not_explain_it():
+    """A reference displaced by 2.7 mm at a square's corner, no implanted markers: exchanging it
+    with the opposite corner fits far worse than leaving it out (F test), so it is not a swap."""
+    rng = np.random.default_rng(3)
+    ct = T_TRUE.apply(REFS) + rng.normal(0, 0.03, REFS.shape)
+    ct[0] += [2.0, 1.0, -1.5]
+    tracks = REFS[None] + rng.normal(0, 0.01, (40, 4, 3))
+    data = RegistrationData(names=list(REFS4), x_mm=tracks[0].copy(), y_mm=ct, tracks_mm=tracks,
+                            time_s=np.arange(40) * 0.1)
+    rep = close_registration_loop(data, RegistrationSpec())
+    assert rep.effects == ["moving-reference"] and rep.final.spec.moved == ("R1",)
+    swap = next(c for c in rep.tried[0] if c["effect"] == "label-swap")
+    assert swap["outside"]["versus_moved_reference"]["p"] < 0.01
+
+
+def test_reference_swapped_with_an_implanted_marker_warns_on_the_ct_check(tmp_path):
+    _trial(tmp_path, ct_edit=_swap("R4", "M2"))
+    r, res = _register(tmp_path)
+    assert r.exit_code == 0, r.output
+    assert res["references"]["moved"] == ["R4"]
+    w = next(w for w in res["warnings"] if w["code"] == "ct-check")
+    assert list(w["markers"]) == ["M2"] and w["markers"]["M2"] > 5.0     # R4 and M2 are 9 mm apart
+    assert "M2" in w["message"]
+
+
+def test_coincident_ct_references_are_invalid_input(tmp_path):
+    def edit(ct):
+        for n in ("R2", "R3", "R4"):
+            ct[n] = ct["R1"].copy()
+    _trial(tmp_path, ct_edit=edit)
+    r, _ = _register(tmp_path)
+    assert r.exit_code == 2 and "ct.fcsv" in r.output and "coincide" in r.output
+    assert not (tmp_path / "out" / "registration.json").exists()
+
+
+@pytest.mark.parametrize("where", ["ct", "xray"])
+def test_collinear_references_are_invalid_input(tmp_path, where):
+    def edit(p):   # R3, R4 exactly on the line R1-R2 (as tracked, after the noise)
+        p["R3"] = (p["R1"] + p["R2"]) / 2
+        p["R4"] = p["R1"] + 2 * (p["R2"] - p["R1"])
+
+    if where == "ct":
+        _trial(tmp_path, ct_edit=edit)
+    else:
+        _trial(tmp_path)
+        x3 = pd.read_csv(tmp_path / "markers3d.csv")
+        for f, g in x3.groupby("frame"):
+            p = {n: g.loc[g["marker"] == n, ["x_mm", "y_mm", "z_mm"]].to_numpy()[0] for n in REFS4}
+            edit(p)
+            for n in ("R3", "R4"):
+                x3.loc[(x3["frame"] == f) & (x3["marker"] == n), ["x_mm", "y_mm", "z_mm"]] = p[n]
+        x3.to_csv(tmp_path / "markers3d.csv", index=False, float_format="%.17g")
+    r, _ = _register(tmp_path)
+    name = "ct.fcsv" if where == "ct" else "markers3d.csv"
+    assert r.exit_code == 2, r.output
+    assert name in r.output and "one line" in r.output and "Traceback" not in r.output
+
+
+def test_nearly_collinear_references_warn(tmp_path):
+    def thin(X):   # R3, R4 within 0.5 mm of the line R1-R2 (40 mm long): lateral/length ratio ~ 0.01
+        d = X[1] - X[0]
+        X[2] = X[0] + 0.5 * d + [0.0, 0.4, 0.0]
+        X[3] = X[0] + 2.0 * d + [0.0, -0.3, 0.1]
+        return X
+    _trial(tmp_path, xray_edit=thin)
+    r, res = _register(tmp_path, REFS4, "--no-loop")
+    assert r.exit_code == 0, r.output
+    w = next(w for w in res["warnings"] if w["code"] == "ill-conditioned-references")
+    assert w["line_ratio"] < 0.05
+
+
+def test_three_references_one_moved_warn_of_a_large_fre(tmp_path):
+    def edit(ct):
+        ct["R2"] = ct["R2"] + [1.0, 0.6, -0.3]
+    _trial(tmp_path, ct_edit=edit)
+    r, res = _register(tmp_path, ("R1", "R2", "R3"))
+    assert r.exit_code == 0, r.output
+    w = next(w for w in res["warnings"] if w["code"] == "large-fre")
+    assert w["fre_rms_mm"] > 0.2 and w["tracking_noise_mm"] == pytest.approx(np.sqrt(3) * NOISE_MM, rel=0.3)
+    assert "three references" in w["message"]
+
+
+def test_implanted_marker_without_a_ct_position_stays_a_marker(tmp_path):
+    _trial(tmp_path, drop_xyz=("M5",))
+    r, res = _register(tmp_path)
+    assert r.exit_code == 0, r.output
+    table = pd.read_csv(tmp_path / "out" / "markers_ct.csv")
+    assert set(table.loc[table["marker"] == "M5", "role"]) == {"marker"}
+    assert "M5" in res["ct_position_undefined"] and "M5" not in res["ct_check_mm"]
+    # compare takes every marker that is neither a reference nor xray-only
+    from bsipipe.fe.compare import markers_at_frame
+    assert "M5" in markers_at_frame(table, 20).names
+
+
+@pytest.mark.parametrize("system", ["LPS", "RAS"])
+def test_markers_ct_states_its_coordinate_system(tmp_path, system):
+    _trial(tmp_path, system=system)
+    r, res = _register(tmp_path)
+    assert r.exit_code == 0, r.output
+    table = pd.read_csv(tmp_path / "out" / "markers_ct.csv")
+    assert list(table.columns[:9]) == ["frame", "time_s", "marker", "x_mm", "y_mm", "z_mm", "dx_mm", "dy_mm", "dz_mm"]
+    assert set(table["coordinate_system"]) == {system} == {res["ct_coordinate_system"]}
+
+
+def test_messages_for_a_short_row_and_two_references(tmp_path):
+    _trial(tmp_path)
+    lines = (tmp_path / "ct.fcsv").read_text().splitlines()
+    good = (tmp_path / "ct.fcsv").read_text()
+    lines[5] = ",".join(lines[5].split(",")[:4])
+    (tmp_path / "ct.fcsv").write_text("\n".join(lines) + "\n")
+    r, _ = _register(tmp_path)
+    assert r.exit_code == 2 and "line 6: 4 fields, expected at least 12 (id,x,y,z," in r.output
+    (tmp_path / "ct.fcsv").write_text(good)
+    r, _ = _register(tmp_path, ("R1", "R2"))
+    assert r.exit_code == 2 and "markers3d.csv" in r.output
+    assert "only 2 given (--reference R1 --reference R2)" in r.output
+    assert not r.output.rstrip().endswith(":")
+
+
+def test_swap_with_references_only_is_not_taken_for_a_mirrored_file(tmp_path):
+    """Four references, no implanted marker: R1 <-> R3 exchanged across the square's diagonal is a
+    mirror image of the true configuration (before: exit 2, "coordinates flipped").  The loop
+    names the swap; nothing besides the references can rule out a moved reference, which a
+    warning says."""
+    def edit(ct):
+        for n in NAMES[4:]:
+            del ct[n]
+        _swap("R1", "R3")(ct)
+    _trial(tmp_path, ct_edit=edit)
+    r, res = _register(tmp_path)
+    assert r.exit_code == 0, r.output
+    assert [s["effect"] for s in res["loop"]["steps"]] == ["label-swap"]
+    # a square's two diagonals: either exchange fits the references (a half turn about the normal)
+    assert res["references"]["swapped"] in ([["R1", "R3"]], [["R2", "R4"]])
+    assert res["fre_rms_mm"] < 5 * np.sqrt(3) * NOISE_MM
+    assert {"label-swap", "ambiguous-reference-error"} <= set(_codes(res))
