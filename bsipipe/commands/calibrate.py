@@ -13,6 +13,12 @@ outlier, is left out and listed with the reason under ``rejected_views``.  The l
 (:mod:`bsipipe.imaging.calibration_effects`) may grow each camera's distortion model.  Two
 ``--stereo`` folders give the extrinsics from frames with the same file name.
 
+Exit 2 (besides invalid options): an image whose size or pixel type differs from the one
+most of a camera's images have (named); a ``--grid`` smaller than the chessboard when that
+leaves fewer than 3 views (the board's size named).  ``warnings``: ``poor-coverage`` and
+``large-rms`` (a camera's or the stereo pair's RMS over
+:data:`bsipipe.imaging.calibrate.LARGE_RMS_PX`, 2 px).
+
 Writes ``DIR/calibration.json`` (last), ``DIR/mayacam_<NAME>.txt`` (MayaCam 2.0, world frame =
 the target in the first shared stereo frame, else in the camera's first view) and
 ``DIR/residuals_<NAME>.png`` (the residual field over the detector, all views pooled).
@@ -26,7 +32,7 @@ from pathlib import Path
 from typing import Literal, Sequence
 
 import numpy as np
-from pydantic import Field, PositiveFloat, field_validator
+from pydantic import Field, PositiveFloat, ValidationInfo, field_validator
 
 from ..config import StrictModel, load_config, validate
 from ..errors import InputError, ProcessingError
@@ -67,6 +73,25 @@ class CalibrateConfig(StrictModel):
     def _grid(cls, v: str) -> str:
         from ..imaging.gridfind import parse_grid
         parse_grid(v)
+        return v
+
+    @field_validator("dictionary")
+    @classmethod
+    def _dictionary(cls, v: str) -> str:
+        # checked whatever the pattern: a misspelt key is an error, not something ignored
+        from ..imaging.gridfind import aruco_dictionaries
+        names = aruco_dictionaries()
+        if v not in names:
+            raise ValueError(f"unknown ArUco dictionary {v!r}; OpenCV's are: {', '.join(names)}")
+        return v
+
+    @field_validator("marker_mm")
+    @classmethod
+    def _marker_in_square(cls, v, info: ValidationInfo):
+        spacing = info.data.get("spacing_mm")  # validated before (field order)
+        if v is not None and spacing is not None and v >= spacing:
+            raise ValueError(f"the marker ({v:g} mm) must be smaller than the ChArUco square, spacing_mm "
+                             f"({spacing:g} mm): the marker sits inside a white square")
         return v
 
 
@@ -135,9 +160,11 @@ def build_config(config_path=None, *, images=None, pattern=None, grid=None, spac
 
 
 def _detect_source(path: str, cfg: CalibrateConfig, kind: str, size: list, views: dict, rejected: dict,
-                   frames: dict | None):
-    """Detect the target in every frame of one source; fill ``views`` / ``rejected`` / ``frames``."""
-    from ..imaging.gridfind import DetectionFailed, GridDetection, find_target, parse_grid
+                   frames: dict | None, sizes: dict, mismatches: dict):
+    """Detect the target in every frame of one source; fill ``views`` / ``rejected`` / ``frames``,
+    ``sizes`` (key -> ((w, h), file, frame index)) and ``mismatches`` (key -> the board size a
+    view shows when ``--grid`` does not fit it, or None)."""
+    from ..imaging.gridfind import DetectionFailed, GridDetection, GridMismatch, find_target, parse_grid
     from ..imaging.calibrate import ViewData
     from ..io.images import iter_frames
 
@@ -149,16 +176,15 @@ def _detect_source(path: str, cfg: CalibrateConfig, kind: str, size: list, views
         kw = {"marker_mm": cfg.marker_mm, "dictionary": cfg.dictionary}
     ambiguous = False
     from ..imaging.gridfind import field_centre
-    for fr in iter_frames(path):
+    for fr in iter_frames(path, check_size=False):  # sizes checked over the whole camera: _check_sizes
         if size[2] is None:
             size[2] = field_centre(fr.image) or "none"
         h, w = fr.image.shape
+        key = fr.name if kind == "view" else f"stereo/{fr.name}"
+        sizes[key] = ((w, h), os.path.join(path, fr.name) if os.path.isdir(path) else path, fr.index,
+                      fr.image.dtype)
         if size[0] is None:
             size[0], size[1] = (w, h), f"{path}: {fr.name}"
-        elif size[0] != (w, h):
-            raise InputError(f"image is {w}x{h} px, expected {size[0][0]}x{size[0][1]} px like {size[1]}",
-                             path=os.path.join(path, fr.name) if os.path.isdir(path) else path, frame=fr.index)
-        key = fr.name if kind == "view" else f"stereo/{fr.name}"
         try:
             if cfg.pattern == "chessboard":
                 from ..imaging.gridfind import find_chessboard
@@ -166,6 +192,8 @@ def _detect_source(path: str, cfg: CalibrateConfig, kind: str, size: list, views
             else:
                 det = find_target(fr.image, cfg.pattern, grid, cfg.spacing_mm, **kw)
         except DetectionFailed as e:
+            if isinstance(e, GridMismatch):
+                mismatches[key] = e.found
             rejected[key] = f"detection failed: {e}"
             log.info("calibrate: %s: %s", key, rejected[key])
             continue
@@ -185,6 +213,49 @@ def _coverage(name: str, sources, points_px):
 
     first = next(iter(iter_frames(sources[0][1])))
     return coverage_warning(name, points_px, first.image, logger=log)
+
+
+def _check_sizes(sizes: dict) -> tuple[int, int]:
+    """The image size of one camera: the size (and pixel type) most of its images have, the
+    first seen on a tie; an image of another is an error that names it, not the majority.
+
+    ``sizes``: view key -> ((w, h), file, frame index, dtype)."""
+    from collections import Counter
+
+    from ..io.images import _depth
+
+    def odd_one(values, what):
+        count = Counter(values)
+        ref = max(count, key=lambda v: count[v])  # Counter keeps insertion order: ties go to the first seen
+        for (wh, path, index, dt), v in zip(sizes.values(), values):
+            if v != ref:
+                same = [os.path.basename(p) for (_, p, _, _), u in zip(sizes.values(), values) if u == ref]
+                like = ", ".join(same[:3]) + (f" and {len(same) - 3} more" if len(same) > 3 else "")
+                got, want = ((f"is {wh[0]}x{wh[1]} px", f"{ref[0]}x{ref[1]} px") if what == "size" else
+                             (f"has {_depth(dt)} pixels", _depth(ref)))
+                raise InputError(f"image {got}, expected {want} like the camera's other {len(same)} image(s) "
+                                 f"({like})", path=path, frame=index)
+        return ref
+
+    ref = odd_one([wh for wh, _, _, _ in sizes.values()], "size")
+    odd_one([np.dtype(dt) for _, _, _, dt in sizes.values()], "depth")
+    return ref
+
+
+def _grid_mismatch_error(name: str, cfg: CalibrateConfig, mismatches: dict, path: str) -> InputError:
+    """Too few views, most of them rejected because ``--grid`` does not fit the board (the
+    others not found at all): exit 2 with the board's size most views show."""
+    from collections import Counter
+    sizes = Counter(f for f in mismatches.values() if f is not None)
+    hint = ""
+    if sizes:
+        (c, r), n = sizes.most_common(1)[0]
+        hint = (f"; the board has {c}x{r} inner corners ({n} of {len(mismatches)} views): is it --grid {c}x{r}? "
+                "(a chessboard's --grid counts inner corners, COLSxROWS)")
+    else:
+        hint = "; the corners found are not a chessboard's of that size (a chessboard's --grid counts inner corners)"
+    return InputError(f"camera {name}: --grid {cfg.grid} does not fit the {cfg.pattern}: {len(mismatches)} "
+                      f"view(s) show a part of a larger board{hint}", path=path)
 
 
 def _failures(rejected: dict[str, str], max_reasons: int = 3) -> str:
@@ -207,11 +278,13 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
     """The whole command; returns the calibration.json content (already written to ``out``)."""
     import cv2
 
-    from ..imaging.calibrate import ModelSpec, calibrate_with_rejection, heldout_error, stereo_calibrate
+    from ..imaging.calibrate import (LARGE_RMS_PX, ModelSpec, calibrate_with_rejection, heldout_error,
+                                     stereo_calibrate)
     from ..imaging.calibration_effects import close_loop
     from ..imaging.gridfind import parse_grid, target_points
     from ..io.mayacam import format_mayacam
     from ..provenance import ResultSet, provenance
+    from ..quality import warning
 
     cfg = build_config(config_path, images=images, pattern=pattern, grid=grid, spacing_mm=spacing_mm, view=view,
                        stereo=stereo, loop=loop, **options)
@@ -236,14 +309,21 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
         views: dict = {}
         rejected: dict[str, str] = {}
         size: list = [None, None, None]  # (w, h), first image, intensifier field centre
+        sizes: dict = {}
+        mismatches: dict = {}
         for kind, path in sources:
             from ..io.images import list_image_files
             inputs.extend([path] if os.path.isfile(path) else [str(q) for q in list_image_files(path)])
             frames = stereo_frames.setdefault(name, {}) if kind == "stereo" else None
-            ambiguous_any |= _detect_source(path, cfg, kind, size, views, rejected, frames)
+            ambiguous_any |= _detect_source(path, cfg, kind, size, views, rejected, frames, sizes, mismatches)
+        if sizes:
+            size[0] = _check_sizes(sizes)
         if len(views) < 3:
+            if mismatches and 2 * len(mismatches) >= len(rejected):  # --grid does not fit the board
+                raise _grid_mismatch_error(name, cfg, mismatches, sources[0][1])
+            why = f" ({len(rejected)} failed: {_failures(rejected)})" if rejected else ""
             raise ProcessingError(f"camera {name}: the target was found in {len(views)} image(s), calibration needs "
-                                  f"at least 3 ({len(rejected)} failed: {_failures(rejected)})", path=sources[0][1])
+                                  f"at least 3{why}", path=sources[0][1])
         image_size = size[0]
         try:
             centre = None if size[2] == "none" else size[2]
@@ -276,6 +356,12 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
         result_views[name] = d
         log.info("calibrate: %s: %s, RMS %.4f px, held-out %.4f px (declared model %.4f px), %d views, %d left out",
                  name, final.camera.spec.describe(), final.rms_px, hf[0], h0[0], len(final.views), len(rejected))
+        if final.rms_px > LARGE_RMS_PX:
+            warnings.append(warning(
+                "large-rms", f"calibrate: {name}: reprojection RMS {final.rms_px:.2f} px is over {LARGE_RMS_PX:g} px; "
+                "a calibration target is located to a few tenths of a pixel, so the views do not fit one camera "
+                "(a wrong --grid or --pattern, views from another camera, mis-ordered points)", logger=log,
+                view=name, rms_px=final.rms_px, limit_px=LARGE_RMS_PX))
         pts = np.concatenate([v.image_points for v in final.views])
         d["coverage"], warn = _coverage(name, sources, pts)
         if warn:
@@ -298,6 +384,12 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
         except ValueError as e:
             raise ProcessingError(f"stereo {a}-{b}: {e}", path=cfg.stereo[b]) from None
         result["stereo"] = st.to_dict()
+        if st.rms_px > LARGE_RMS_PX:
+            warnings.append(warning(
+                "large-rms", f"calibrate: stereo {a}-{b}: reprojection RMS {st.rms_px:.2f} px is over "
+                f"{LARGE_RMS_PX:g} px: the shared frames do not fit the two cameras (frames that were not taken at "
+                "the same instant, or a wrong --grid)", logger=log, view=f"{a}-{b}", rms_px=st.rms_px,
+                limit_px=LARGE_RMS_PX))
         # world = the target in the first shared frame, seen by camera a
         f0 = st.frames[0]
         va = stereo_frames[a][f0]

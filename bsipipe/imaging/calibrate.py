@@ -33,9 +33,12 @@ over all points.  The held-out error is leave-one-view-out: calibrate without vi
 find its pose with the intrinsics fixed (``solvePnP``), and take the RMS over the held-out
 points of all views.
 
-Outlier views: a view whose RMS exceeds ``max(median + 5 * 1.4826 * MAD, 3 * median)`` of the
-views' RMS is left out (worst first, refitting after each), and reported with its reason.
-A view whose grid was mis-ordered or blurred shows up here.
+Outlier views (:func:`calibrate_with_rejection`): a view is judged held out, against a fit
+without it: when its held-out RMS exceeds ``max(median + 5 * 1.4826 * MAD, 3 * median)`` of the
+other views' RMS in that fit, and leaving it out lowers the others' RMS by 5 % or more, it is
+left out (the furthest over first, refitting after each) and reported with its reason.  A
+view from another camera or with a mis-ordered grid shows up here; a blurred one that is
+merely noisier is kept and flagged.
 """
 
 from __future__ import annotations
@@ -61,6 +64,13 @@ OUTLIER_MEDIAN_FACTOR = 3.0
 # corners are merely noisier (blur, a steep angle) but consistent with the others is kept
 # and flagged, as OpenCV and Bouguet would keep it.
 OUTLIER_MIN_INFLUENCE = 0.05
+#: The views with the largest RMS that are judged held out, each round.
+OUTLIER_CANDIDATES = 3
+#: A calibration whose reprojection RMS exceeds this (px) is not to be trusted: a chessboard's
+#: corners or a bead grid's centres are located to a few tenths of a pixel (OpenCV's sample
+#: views: 0.41 px; blurred or steep views about 1 px), so an RMS of several pixels means a
+#: wrong --grid, views from two cameras or mis-ordered points, not detection noise.
+LARGE_RMS_PX = 2.0
 
 
 @dataclass(frozen=True)
@@ -552,14 +562,21 @@ def outlier_threshold_px(rms: Sequence[float]) -> float:
 
 
 def calibrate_with_rejection(views: Sequence[ViewData], image_size: tuple[int, int], spec: ModelSpec = ModelSpec(),
-                             *, reject_outliers: bool = True, min_views: int = 3, twist_centre_px=None) -> Calibration:
-    """:func:`calibrate_camera`, leaving out outlier views one at a time (worst first).
+                             *, reject_outliers: bool = True, min_views: int = 3, twist_centre_px=None,
+                             n_candidates: int = OUTLIER_CANDIDATES) -> Calibration:
+    """:func:`calibrate_camera`, leaving out outlier views one at a time.
 
-    A view is an outlier when its RMS exceeds :func:`outlier_threshold_px`; it is left out
-    only when leaving it out lowers the other views' RMS by at least
-    ``OUTLIER_MIN_INFLUENCE`` (it pulls the model, as a wrongly ordered or mis-detected
-    board does).  Otherwise it is kept and listed in ``Calibration.flagged``.  Every view
-    left out is in ``Calibration.rejected`` with its RMS, the threshold and its influence.
+    A view that does not belong (another camera, a mis-ordered board) pulls the fit towards
+    itself, so its own RMS looks milder and the others' worse, and the median and MAD of the
+    contaminated fit hide it.  So each of the ``n_candidates`` views with the largest RMS is
+    judged held out: the camera is calibrated without it, its pose found with those
+    intrinsics (``solvePnP``), and its held-out RMS compared with
+    :func:`outlier_threshold_px` of the other views' RMS in that fit.  The candidate furthest
+    over its threshold is left out when leaving it out also lowers the other views' RMS by at
+    least ``OUTLIER_MIN_INFLUENCE`` (it pulls the model); a view over the threshold that does
+    not pull the model is kept and listed in ``Calibration.flagged`` (noisier but consistent:
+    blur, a steep angle).  Repeated until no candidate is over its threshold.  Every view
+    left out is in ``Calibration.rejected`` with its RMS, held-out RMS, threshold and influence.
     """
     views = list(views)
     rejected: dict[str, str] = {}
@@ -568,24 +585,39 @@ def calibrate_with_rejection(views: Sequence[ViewData], image_size: tuple[int, i
     while reject_outliers and len(cal.views) > min_views:
         names = [v.name for v in cal.views]
         rms = np.array([cal.per_view_rms_px[n] for n in names])
-        thr = outlier_threshold_px(rms)
-        worst = int(np.argmax(rms))
-        if rms[worst] <= thr:
+        judged = []
+        for k in np.argsort(-rms, kind="stable")[: max(1, n_candidates)]:
+            v = cal.views[k]
+            keep = [u for u in cal.views if u.name != v.name]
+            try:
+                cal_wo = calibrate_camera(keep, image_size, spec, init=cal.camera, twist_centre_px=twist_centre_px)
+            except ValueError:
+                continue
+            r, t = cal_wo.camera.solve_pose(v.object_points, v.image_points, cal.rvecs[k], cal.tvecs[k])
+            held = _rms(v.image_points - cal_wo.camera.project(v.object_points, r, t))
+            thr = outlier_threshold_px([cal_wo.per_view_rms_px[u.name] for u in keep])
+            others_with = _rms(np.concatenate([cal.residuals[u.name] for u in keep]))
+            influence = 1.0 - cal_wo.rms_px / others_with if others_with > 0 else 0.0
+            why = (f"reprojection RMS {rms[k]:.3f} px, held out {held:.3f} px > threshold {thr:.3f} px "
+                   f"(max(median + {OUTLIER_MAD_SIGMAS:g} x 1.4826 MAD, {OUTLIER_MEDIAN_FACTOR:g} x median) of the "
+                   f"other views, fitted without it); leaving it out changes the other views' RMS by "
+                   f"{-100 * influence:+.1f} %")
+            if held > thr:
+                judged.append((held / thr, influence, v.name, why, cal_wo))
+        if not judged:
             break
-        keep = [v for v in cal.views if v.name != names[worst]]
-        others_with = _rms(np.concatenate([cal.residuals[v.name] for v in keep]))
-        cal_wo = calibrate_camera(keep, image_size, spec, init=cal.camera, twist_centre_px=twist_centre_px)
-        influence = 1.0 - cal_wo.rms_px / others_with if others_with > 0 else 0.0
-        why = (f"reprojection RMS {rms[worst]:.3f} px > threshold {thr:.3f} px "
-               f"(max(median + {OUTLIER_MAD_SIGMAS:g} x 1.4826 MAD, {OUTLIER_MEDIAN_FACTOR:g} x median) of the views); "
-               f"leaving it out changes the other views' RMS by {-100 * influence:+.1f} %")
-        if influence < OUTLIER_MIN_INFLUENCE:
-            flagged[names[worst]] = f"kept: {why} (< {100 * OUTLIER_MIN_INFLUENCE:g} %: consistent with the others)"
-            log.warning("calibrate: %s is noisier than the other views but consistent with them: %s",
-                        names[worst], why)
+        pulling = [j for j in judged if j[1] >= OUTLIER_MIN_INFLUENCE]
+        if not pulling:
+            for _, _, name, why, _ in judged:
+                if name not in flagged:
+                    flagged[name] = f"kept: {why} (< {100 * OUTLIER_MIN_INFLUENCE:g} %: consistent with the others)"
+                    log.warning("calibrate: %s is noisier than the other views but consistent with them: %s",
+                                name, why)
             break
-        rejected[names[worst]] = f"outlier: {why}"
-        log.info("calibrate: leaving out %s: %s", names[worst], rejected[names[worst]])
+        _, _, name, why, cal_wo = max(pulling, key=lambda j: j[0])
+        rejected[name] = f"outlier: {why}"
+        flagged.pop(name, None)
+        log.info("calibrate: leaving out %s: %s", name, rejected[name])
         cal = cal_wo
     cal.rejected = rejected
     cal.flagged = flagged

@@ -4,10 +4,11 @@ glue between :func:`bsipipe.imaging.calibrate.calibrate_camera` and
 
 The loop fits the declared model, tests the reprojection residual for structure (radial and
 tangential components about the principal point, view by view in grid order, against the
-radius), and adds an effect only when the BIC drops by more than 10 *and* the
-leave-one-view-out held-out RMS drops by more than 2 % (:class:`bsipipe.loop.SelectionRule`):
-an effect that only fits the detection noise of the views it saw does not predict a view it
-has not seen.
+radius), and adds an effect only when the BIC drops by more than 10, the fitted RMS drops by
+more than 5 % *and* the leave-one-view-out held-out RMS drops by more than 5 %
+(:class:`bsipipe.loop.SelectionRule`'s defaults, ``rmse_gain_min`` and
+``heldout_gain_min``): an effect that only fits the detection noise of the views it saw does
+not predict a view it has not seen.
 """
 
 from __future__ import annotations

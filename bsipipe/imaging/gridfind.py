@@ -13,7 +13,8 @@ Beads (circles)
 X-ray beads are dark on a bright background (they absorb); printed circle grids may be
 either.  :func:`detect_blobs` flattens the background with a morphological top-hat (black-hat
 for dark blobs: :math:`s = \mathrm{close}_B(I) - I`, with a square :math:`B` 2.5 bead
-diameters wide, the diameter itself measured in a first pass), thresholds :math:`s` at its
+diameters wide, the diameter itself measured first by a scale-space search,
+:func:`estimate_blob_diameter`), thresholds :math:`s` at its
 median + 5 robust (MAD) standard deviations, keeps components whose area and elongation
 match the median bead, and places each centre at the iterated, background-subtracted
 intensity centroid
@@ -51,6 +52,15 @@ PATTERNS = ("chessboard", "circles", "asymmetric-circles", "charuco")
 
 class DetectionFailed(Exception):
     """The target was not found in a view; ``str(e)`` says why."""
+
+
+class GridMismatch(DetectionFailed):
+    """The view shows a board of another size than the grid asked for (``found``: its
+    ``(cols, rows)`` in the orientation of the grid asked for, None when not measured)."""
+
+    def __init__(self, message: str, found: tuple[int, int] | None):
+        super().__init__(message)
+        self.found = None if found is None else tuple(int(x) for x in found)
 
 
 @dataclass
@@ -180,6 +190,42 @@ def refine_centroid(sig: np.ndarray, xy0, radius_px: float, floor: float = 0.0,
     return cx, cy, m
 
 
+def estimate_blob_diameter(img: np.ndarray, polarity: str, valid: np.ndarray, se0: int = 15,
+                           rel_tol: float = 0.15, max_steps: int = 8) -> float:
+    r"""Blob diameter (px) from the image, whatever the blob size: a scale-space search.
+
+    The top-hat of width :math:`w` (:func:`_signal`) keeps only features narrower than
+    :math:`w`: a blob wider than that leaves fragments of its rim, whose equivalent diameter
+    :math:`d(w) = 2\sqrt{	ilde A / \pi}` (:math:`	ilde A` the median component area above
+    a 6-sigma threshold) grows with :math:`w`; once :math:`w` exceeds the blobs, :math:`d(w)`
+    stops changing.  So :math:`w` is widened from ``se0`` to :math:`\max(2w, 3d + 2)` until
+    :math:`d` changes by less than ``rel_tol``.  (A single width fails both ways: 15 px finds
+    rim fragments of a 50 px bead and takes them for 7 px blobs.)
+    """
+    import cv2
+    se, d_prev = int(se0), None
+    se_max = max(se0, min(img.shape) // 2)
+    for _ in range(max_steps):
+        sig0 = _signal(img, polarity, se)
+        thr0, _ = _robust_threshold(sig0, valid, 6.0)
+        _, _, stats, _ = _components(np.where(valid, sig0, 0), thr0)
+        areas = stats[1:, cv2.CC_STAT_AREA].astype(float)
+        areas = areas[areas >= 4]
+        if areas.size == 0:
+            if d_prev is not None:
+                return d_prev
+            raise DetectionFailed(f"no {polarity} blobs found: the blob diameter could not be estimated from the "
+                                  "image (give --diameter-px)")
+        d = float(2.0 * np.sqrt(np.median(areas) / np.pi))
+        if d_prev is not None and abs(d - d_prev) <= rel_tol * d_prev:
+            return d
+        d_prev = d
+        if se >= se_max:
+            break
+        se = min(se_max, max(2 * se, int(3 * d) + 2))
+    return d_prev
+
+
 def detect_blobs(image: np.ndarray, polarity: Literal["dark", "bright"] = "dark",
                  diameter_px: float | None = None, mask: np.ndarray | None = None,
                  area_range: tuple[float, float] = (0.4, 2.5), max_elongation: float = 2.0) -> Blobs:
@@ -216,24 +262,7 @@ def detect_blobs(image: np.ndarray, polarity: Literal["dark", "bright"] = "dark"
     if mask is not None:
         valid &= mask
     if diameter_px is None:
-        # widen the top-hat until it is well wider than the blobs it finds
-        se = 15
-        d_est = None
-        for _ in range(4):
-            sig0 = _signal(img, polarity, se)
-            thr0, _ = _robust_threshold(sig0, valid, 6.0)
-            n, lab, stats, _ = _components(np.where(valid, sig0, 0), thr0)
-            areas = stats[1:, cv2.CC_STAT_AREA].astype(float)
-            areas = areas[areas >= 4]
-            if areas.size == 0:
-                break
-            d_est = float(2.0 * np.sqrt(np.median(areas) / np.pi))
-            if 2.0 * d_est < se:
-                break
-            se = int(3 * d_est) + 2
-        if d_est is None:
-            raise DetectionFailed(f"no {polarity} blobs found")
-        diameter_px = d_est
+        diameter_px = estimate_blob_diameter(img, polarity, valid)
     d = float(diameter_px)
     sig = _signal(img, polarity, int(round(2.5 * d)) + 2)
     sig = np.where(valid, sig, 0).astype(np.float32)
@@ -550,11 +579,206 @@ def find_chessboard(image: np.ndarray, grid: tuple[int, int], spacing_mm: float,
         if not ok:
             raise DetectionFailed(f"no {grid[0]}x{grid[1]} chessboard found")
     pts = c.reshape(-1, 2).astype(np.float64)
+    # a finder asked for fewer corners than the board has returns a part of it, or a sheared
+    # lattice of its corners: both calibrate silently to nonsense
+    cells = chessboard_cells(g, pts, grid)
+    found = None
+    if cells.mean() < CHESS_CELL_FRACTION:
+        found = chessboard_size(g, grid)
+        if found is None or found == tuple(grid):
+            raise GridMismatch(f"the {grid[0]}x{grid[1]} corners {method} found are not a chessboard's (only "
+                               f"{100 * cells.mean():.0f} % of the cells between them are single squares): "
+                               "is --grid the board's inner corners, COLSxROWS?", None)
+    else:
+        extra = chessboard_extension(g, pts, grid)
+        if any(extra):
+            found = (grid[0] + extra[0] + extra[1], grid[1] + extra[2] + extra[3])
+    if found is not None:
+        raise GridMismatch(f"the board has {found[0]}x{found[1]} inner corners, --grid says {grid[0]}x{grid[1]} "
+                           f"({method} found a part of it)", found)
     obj = target_points("chessboard", grid, spacing_mm)
     ids = np.arange(len(pts))
     colrow = np.column_stack([ids % grid[0], ids // grid[0]])
     return GridDetection(pts, obj, ids, colrow, complete=True,
                          ambiguous=(grid[0] % 2 == grid[1] % 2), info={"method": method})
+
+
+def _sample_cells(img: np.ndarray, H: np.ndarray, cells: np.ndarray, half: float = 0.25) -> np.ndarray:
+    """Mean intensity of ``img`` over the middle of chessboard cells: 3x3 bilinear samples
+    within +-``half`` cell of each cell centre ``cells`` (m, 2) in grid units (col, row),
+    mapped to the image by the homography ``H``.  NaN where a sample falls outside the image."""
+    import cv2
+    o = np.linspace(-half, half, 3)
+    du, dv = np.meshgrid(o, o)
+    g = (cells[:, None, :] + np.column_stack([du.ravel(), dv.ravel()])[None]).reshape(-1, 1, 2)
+    xy = cv2.perspectiveTransform(g.astype(np.float64), H).reshape(-1, 2).astype(np.float32)
+    v = cv2.remap(img, xy[:, 0].reshape(1, -1), xy[:, 1].reshape(1, -1), cv2.INTER_LINEAR,
+                  borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"))
+    return v.reshape(len(cells), -1).mean(axis=1)
+
+
+#: A corner grid is a chessboard's when at least this fraction of the cells between its
+#: corners are single squares (uniform, of the colour their parity predicts); a finder asked
+#: for a grid smaller than the board can return a sheared lattice of its corners instead.
+CHESS_CELL_FRACTION = 0.8
+#: A line of cells beyond a found board continues the chessboard when its colours alternate
+#: as the cells just inside do, each step by more than this fraction of theirs (a white
+#: margin does not alternate; a cluttered background does so by chance, in about half)...
+CHESS_EXTEND_RATIO = 0.3
+#: ... in at least this fraction of the steps (2 or more) that are in the image.
+CHESS_EXTEND_FRACTION = 0.75
+
+
+def _cell_samples(img: np.ndarray, P: np.ndarray, uv=(0.3, 0.7)) -> np.ndarray:
+    """Intensities at the points ``(u, v)``, ``u, v`` in ``uv``, of every cell of the corner
+    array ``P`` (R, C, 2) (bilinear in the cell's four corners): (R-1, C-1, len(uv)**2)."""
+    import cv2
+    P = np.asarray(P, np.float64)
+    p00, p10, p01, p11 = P[:-1, :-1], P[:-1, 1:], P[1:, :-1], P[1:, 1:]
+    pts = [(1 - u) * (1 - v) * p00 + u * (1 - v) * p10 + (1 - u) * v * p01 + u * v * p11 for v in uv for u in uv]
+    xy = np.stack(pts, axis=2).astype(np.float32)  # (R-1, C-1, k, 2)
+    flat = xy.reshape(1, -1, 2)
+    out = cv2.remap(img, flat[..., 0], flat[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                    borderValue=float("nan"))
+    return out.reshape(xy.shape[:3])
+
+
+def chessboard_cells(image: np.ndarray, corners_px: np.ndarray, grid: tuple[int, int]) -> np.ndarray:
+    """Per cell between the corners (``(rows-1, cols-1)`` bool): the cell is one square of the
+    chessboard, i.e. its four sample points (at 0.3 and 0.7 of its sides) all lie on the side of
+    the mid-grey that its colour parity predicts, by over a quarter of the contrast."""
+    C, R = grid
+    g = np.asarray(image, np.float32)
+    S = _cell_samples(g, np.asarray(corners_px, np.float64).reshape(R, C, 2))
+    par = np.add.outer(np.arange(R - 1), np.arange(C - 1)) % 2
+    m = np.median(S, axis=2)
+    if not np.isfinite(m).any() or (par == 0).all():
+        return np.isfinite(m)
+    e0, e1 = np.nanmedian(m[par == 0]), np.nanmedian(m[par == 1])
+    mid, con = 0.5 * (e0 + e1), abs(e0 - e1)
+    sgn = np.where(par == 0, np.sign(e0 - mid), np.sign(e1 - mid))
+    with np.errstate(invalid="ignore"):
+        return np.all((S - mid) * sgn[..., None] > 0.25 * con, axis=2) & (con > 0)
+
+
+def chessboard_extension(image: np.ndarray, corners_px: np.ndarray, grid: tuple[int, int],
+                         max_extra: int = 30) -> tuple[int, int, int, int]:
+    r"""How many lines of inner corners the chessboard in ``image`` has beyond the ``grid`` of
+    ``corners_px`` found: ``(left, right, top, bottom)`` in the grid's own directions (all 0
+    for a board found whole).
+
+    ``findChessboardCorners`` asked for 8x6 finds 8x6 of a 9x6 board.  Beyond the outermost
+    corners of a whole board lie one line of the board's squares and then its margin; beyond
+    those of a part of it, two lines of squares.  So, side by side, the next corner line out
+    is predicted (homography of the three outermost lines) and refined (``cornerSubPix``), and
+    the cells half a square beyond it are sampled (:func:`_sample_cells`): their intensities
+    :math:`v_k` along the line continue the board when their steps :math:`v_{k+1} - v_k`
+    repeat those of the cells just inside the board (two cells in, the same colour parity),
+    each by more than ``CHESS_EXTEND_RATIO`` of theirs, in ``CHESS_EXTEND_FRACTION`` of the
+    steps.  Then the line is added and the next one tried.
+    """
+    import cv2
+    C, R = grid
+    if R < 3 or C < 3:
+        return (0, 0, 0, 0)
+    g = np.asarray(image, np.float32)
+    P = np.asarray(corners_px, np.float64).reshape(R, C, 2)
+    known = {(c, r): P[r, c] for r in range(R) for c in range(C)}
+    lo, hi = [0, 0], [C - 1, R - 1]  # extent (col, row) of the known corners
+    extra = [0, 0, 0, 0]
+    u8 = _to_u8(g)
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+    h, w = g.shape
+
+    def line_homography(axis, lines):
+        src = np.array([k for k in known if k[axis] in lines], np.float64)
+        return cv2.findHomography(src, np.array([known[(int(a), int(b))] for a, b in src]))[0]
+
+    for side, (axis, sgn) in enumerate(((0, -1), (0, 1), (1, -1), (1, 1))):
+        other = 1 - axis
+        for _ in range(max_extra):
+            edge = lo[axis] if sgn < 0 else hi[axis]
+            H = line_homography(axis, [edge - sgn * k for k in range(3)])
+            if H is None:
+                break
+            # the next corner line out, where the three outermost lines put it, refined: on a
+            # whole board these are the outer squares' vertices on the margin
+            new = edge + sgn
+            span = range(lo[other], hi[other] + 1)
+            keys = [(new, r) if axis == 0 else (r, new) for r in span]
+            pred = cv2.perspectiveTransform(np.array(keys, np.float64).reshape(-1, 1, 2), H).reshape(-1, 2)
+            last = np.array([known[(edge, r) if axis == 0 else (r, edge)] for r in span])
+            for k, (p, d) in enumerate(zip(pred, np.hypot(*(pred - last).T))):
+                hw = int(max(2, min(11, np.floor(0.35 * d))))  # the window must not reach the next line
+                if not (hw + 1 < p[0] < w - hw - 2 and hw + 1 < p[1] < h - hw - 2):
+                    continue
+                ref = cv2.cornerSubPix(u8, p.astype(np.float32).reshape(1, 1, 2), (hw, hw), (-1, -1), crit)
+                ref = ref.reshape(2).astype(np.float64)
+                if np.hypot(*(ref - p)) < 0.3 * d:
+                    pred[k] = ref
+            added = dict(zip(keys, pred))
+            known.update(added)
+            H = line_homography(axis, [new, edge, edge - sgn])
+            cells = np.zeros((hi[other] - lo[other], 2))
+            cells[:, other] = np.arange(lo[other], hi[other]) + 0.5
+            cells[:, axis] = new + 0.5 * sgn
+            beyond = _sample_cells(g, H, cells) if H is not None else np.full(len(cells), np.nan)
+            cells[:, axis] = edge - 0.5 * sgn
+            inside = _sample_cells(g, H, cells) if H is not None else np.full(len(cells), np.nan)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                ratio = np.diff(beyond) / np.diff(inside)
+            seen = np.isfinite(ratio)
+            if (seen.sum() < max(2, 0.75 * len(ratio))
+                    or np.mean(ratio[seen] > CHESS_EXTEND_RATIO) < CHESS_EXTEND_FRACTION):
+                for k in added:
+                    del known[k]
+                break
+            if sgn < 0:
+                lo[axis] = new
+            else:
+                hi[axis] = new
+            extra[side] += 1
+    return tuple(extra)
+
+
+def chessboard_size(image: np.ndarray, grid: tuple[int, int]) -> tuple[int, int] | None:
+    """The inner corners ``(cols, rows)`` of the chessboard in ``image`` whatever its size, in
+    the orientation of ``grid`` (the longer side first when ``grid``'s is): OpenCV's
+    ``findChessboardCornersSBWithMeta`` with ``CALIB_CB_LARGER``, less the lines along its
+    border whose cells are not single squares (it takes a board's outer squares' vertices on
+    the margin for corners) and its outermost lines, grown again by
+    :func:`chessboard_extension` (which stops at the margin).  None when no board
+    is found or its cells are not single squares.  About a second per image: used
+    only to name the board when ``grid`` does not fit it."""
+    import cv2
+    u8 = _to_u8(image)
+    try:
+        ok, c, meta = cv2.findChessboardCornersSBWithMeta(
+            u8, tuple(grid), cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_LARGER)
+    except cv2.error:
+        return None
+    if not ok or meta is None:
+        return None
+    rows, cols = meta.shape[:2]
+    if rows * cols != len(c):
+        return None
+    P = c.reshape(rows, cols, 2).astype(np.float64)
+    while P.shape[0] >= 3 and P.shape[1] >= 3:
+        good = chessboard_cells(u8, P.reshape(-1, 2), (P.shape[1], P.shape[0]))
+        bad = {"top": 1 - good[0].mean(), "bottom": 1 - good[-1].mean(),
+               "left": 1 - good[:, 0].mean(), "right": 1 - good[:, -1].mean()}
+        worst = max(bad, key=bad.get)
+        if bad[worst] <= 0.5:
+            break
+        P = {"top": P[1:], "bottom": P[:-1], "left": P[:, 1:], "right": P[:, :-1]}[worst]
+    size = (P.shape[1], P.shape[0])
+    if min(size) < 3 or chessboard_cells(u8, P.reshape(-1, 2), size).mean() < CHESS_CELL_FRACTION:
+        return None
+    if min(size) >= 5:  # the outermost lines may be the margin's vertices: grow back from inside
+        P, size = P[1:-1, 1:-1], (size[0] - 2, size[1] - 2)
+    extra = chessboard_extension(u8, P.reshape(-1, 2), size)
+    size = (size[0] + extra[0] + extra[1], size[1] + extra[2] + extra[3])
+    return (max(size), min(size)) if grid[0] >= grid[1] else (min(size), max(size))
 
 
 def find_circles(image: np.ndarray, grid: tuple[int, int], spacing_mm: float, *,
@@ -570,7 +794,10 @@ def find_circles(image: np.ndarray, grid: tuple[int, int], spacing_mm: float, *,
     pattern = "asymmetric-circles" if asymmetric else "circles"
     blobs = detect_blobs(image, polarity=polarity, diameter_px=diameter_px, mask=mask)
     if len(blobs.xy) < 6:
-        raise DetectionFailed(f"only {len(blobs.xy)} {polarity} blobs found")
+        raise DetectionFailed(f"only {len(blobs.xy)} {polarity} blobs found" + (
+            "" if diameter_px is not None else
+            f" with the blob diameter estimated from the image at {blobs.diameter_px:.1f} px: if the estimate "
+            "failed, give --diameter-px"))
     ij, ok = lattice_indices(blobs.xy)
     xy = blobs.xy[ok]
     ij = ij[ok]
@@ -643,6 +870,23 @@ def _grid_hint(ij: np.ndarray, xy: np.ndarray, pattern: str, grid: tuple[int, in
             "(OpenCV's convention: circles per row x rows)?")
 
 
+def aruco_dictionaries() -> list[str]:
+    """The names of OpenCV's predefined ArUco dictionaries (``cv2.aruco.DICT_*``)."""
+    import cv2
+    return sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_") and isinstance(getattr(cv2.aruco, n), int))
+
+
+def check_charuco(spacing_mm: float, marker_mm: float | None, dictionary: str) -> None:
+    """ValueError unless ``dictionary`` names a predefined ArUco dictionary and the marker
+    (if given) is smaller than the square it sits in."""
+    names = aruco_dictionaries()
+    if dictionary not in names:
+        raise ValueError(f"unknown ArUco dictionary {dictionary!r}; OpenCV's are: {', '.join(names)}")
+    if marker_mm is not None and not 0 < float(marker_mm) < float(spacing_mm):
+        raise ValueError(f"the ChArUco marker ({marker_mm:g} mm) must be smaller than the square it sits in "
+                         f"(--spacing-mm {spacing_mm:g})")
+
+
 def find_charuco(image: np.ndarray, grid: tuple[int, int], spacing_mm: float, *,
                  marker_mm: float | None = None, dictionary: str = "DICT_4X4_50",
                  min_corners: int = 6) -> GridDetection:
@@ -652,6 +896,7 @@ def find_charuco(image: np.ndarray, grid: tuple[int, int], spacing_mm: float, *,
     board's ArUco ids fix its orientation, so the detection is never ambiguous.
     """
     import cv2
+    check_charuco(spacing_mm, marker_mm, dictionary)
     aruco = cv2.aruco
     d = aruco.getPredefinedDictionary(getattr(aruco, dictionary))
     board = aruco.CharucoBoard(grid, float(spacing_mm), float(marker_mm or 0.75 * spacing_mm), d)
