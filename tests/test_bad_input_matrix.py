@@ -194,11 +194,6 @@ def _no_contact(lines):
         lines[i] = f'"{t}","{x}","{rng.normal(0, 0.001):.6f}"'
 
 
-def _wrong_sign(lines):
-    """The names row says the extension is positive in compression; the data are Bluehill's negatives."""
-    lines[13] = '"Time","Compressive extension","Load"'
-
-
 def _set_line(k: int, text: str):
     def edit(lines):
         lines[k - 1] = text
@@ -346,8 +341,6 @@ CASES: list[Case] = [
     _c("log-no-header", "fit-ogden", "data without a names row", _fit_log("bad_no_header.csv", 1)),
     _c("log-missing-column", "fit-ogden", "no extension column", _fit_log("bad_missing_column.csv", 1)),
     _c("log-geometry-unit", "fit-ogden", "diameter in cubits", _fit_log("bad_geometry_unit.csv", 1)),
-    _c("log-wrong-sign", "fit-ogden", "extension named compressive but negative in compression",
-       lambda b, d: ([*FIT, p := _good_log_edit(d, "sign.csv", _wrong_sign)], p, None), expect=1),
     _c("log-no-contact", "fit-ogden", "force never rises (no contact)",
        lambda b, d: ([*FIT, p := _good_log_edit(d, "flat.csv", _no_contact)], p, None), expect=1, sub=True),
     _c("log-zero-diameter", "fit-ogden", "metadata diameter 0 mm",

@@ -179,3 +179,22 @@ def test_real_bluehill_ramps():
     # about 5 noise levels over the initial slope (0.025 N / 6.8 N/mm = 0.004 mm each).
     assert contact_extension[0] == pytest.approx(-2.783, abs=0.02)
     assert contact_extension[1] == pytest.approx(-3.239, abs=0.02)
+
+
+def test_record_starting_loaded_and_cyclic_ramps():
+    """A record whose force is already rising at its first sample raises ContactNotInRecord
+    (a ProcessingError the command turns into "give it with --contact-mm"); loading_ramps
+    finds each cycle's loading ramp, the first ending where the detector's does."""
+    from bsipipe.errors import ProcessingError
+    from bsipipe.mechanics.contact import ContactNotInRecord, _loading_end, loading_ramps
+
+    t = np.arange(0.0, 60.0, 0.1)
+    leg = np.linspace(0.0, 3.0, 150)
+    d = np.concatenate([leg, leg[::-1], leg, leg[::-1]])
+    f = 0.05 * (d + 0.3) ** 2 + 1e-3 * np.random.default_rng(0).standard_normal(d.size)
+    ramps = loading_ramps(d)
+    assert ramps == [(0, 150), (299, 450)]
+    assert _loading_end(d) == ramps[0][1]
+    with pytest.raises(ContactNotInRecord, match="not in the record") as e:
+        detect_contact(t, d, f)
+    assert isinstance(e.value, ProcessingError)

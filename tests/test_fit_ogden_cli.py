@@ -165,3 +165,72 @@ def test_processing_failures_are_exit_1(bluehill2_log, tmp_path, monkeypatch):
     r = _invoke("fit-ogden", path, "--no-loop", "-o", out)
     assert r.exit_code == 1 and "did not converge" in r.output
     assert not (out / "fit.json").exists()
+
+
+# --- a record that starts loaded: the contact given (--contact-mm), a cyclic record ---------------
+
+def _preloaded_cyclic_csv(path, *, contact_mm=-0.3, cycles=2, second_cycle_factor=0.8, seed=3,
+                          geometry_rows=("Dimensions : Diameter,18,mm", "Dimensions : Height,12,mm")):
+    """A Bluehill 2 export of a cyclic test that starts loaded: the platen touched ``-contact_mm``
+    before the first sample.  One-term Ogden (720 Pa, -4.7), 18 x 12 mm, 10 mm/min to 30 %
+    strain and back, 10 Hz, 1 mN noise; later cycles ``second_cycle_factor`` softer (stress
+    softening), which a fit of the whole record would average in."""
+    mu, alpha, area_m2 = 720.0, -4.7, np.pi * 81e-6
+    speed, peak = 10 / 60, 0.3 * 12.0 + contact_mm
+    leg = np.arange(0.0, peak / speed, 0.1) * speed
+    x = np.concatenate([np.concatenate([leg, peak - leg]) for _ in range(cycles)])
+    cycle = np.repeat(np.arange(cycles), 2 * leg.size)
+    t = 0.1 * np.arange(x.size)
+    lam = 1.0 - np.clip(x - contact_mm, 0.0, None) / 12.0
+    f = -(2 * mu / alpha) * (lam ** (alpha - 1) - lam ** (-alpha / 2 - 1)) * area_m2
+    f = f * np.where(cycle > 0, second_cycle_factor, 1.0)
+    f = f + 1e-3 * np.random.default_rng(seed).standard_normal(f.size)
+    rows = [f"{a:.5f},{-b:.5f},{-c:.6f},1" for a, b, c in zip(t, x, f)]
+    text = "\r\n".join(["Text Inputs : Specimen label,P1", *geometry_rows, "", "Time,Extension,Load,Segment ID",
+                        "(sec),(mm),(N),", *rows]) + "\r\n"
+    Path(path).write_bytes(text.encode())
+    return path
+
+
+def test_record_starting_loaded_needs_and_takes_the_contact(tmp_path):
+    """The real Bluehill 2 file starts preloaded and is cyclic: the contact is not in the record.
+    The error names --contact-mm; with it the first loading ramp is fitted, the load cell's zero
+    is taken as 0 N (no unloaded sample) and fit.json says so; mu is the truth's."""
+    path = _preloaded_cyclic_csv(tmp_path / "preloaded.csv")
+    r = _invoke("fit-ogden", path, "-o", tmp_path / "no")
+    assert r.exit_code == 1
+    assert "--contact-mm" in r.output and "contact_mm" in r.output
+    r = _invoke("fit-ogden", path, "--contact-mm", "-0.3", "--bootstrap", "0", "-o", tmp_path / "out")
+    assert r.exit_code == 0, r.output
+    d = json.loads((tmp_path / "out" / "fit.json").read_text())
+    _check_contract(d)
+    inp = d["inputs"][0]
+    assert inp["contact_mm"] == -0.3 and inp["contact"]["method"].startswith("given")
+    assert inp["contact"]["before_first_sample"] and inp["contact"]["extension_mm"] == pytest.approx(0.3)
+    assert inp["fitted_part"].startswith("first loading ramp") and inp["loading_ramps"] == 2
+    assert inp["n_points"] < inp["n_record"] / 3
+    assert inp["force_baseline"]["level_n"] == 0.0 and "assumed 0 N" in inp["force_baseline"]["source"]
+    assert "load-baseline-drift" not in [s["effect"] for s in d["loop"]["steps"]]
+    print(f"\npreloaded cyclic, contact given: {d['spec']['description']}, mu {d['params']['mu_pa']:.1f} "
+          f"{np.round(d['ci95']['mu_pa'], 1)}, alpha {d['params']['alpha']:.3f}")
+    assert d["ci95"]["mu_pa"][0] <= 720.0 <= d["ci95"]["mu_pa"][1]
+    assert abs(d["params"]["alpha"] + 4.7) < 0.15
+
+
+def test_contact_mm_in_config_and_thickness_as_height(tmp_path):
+    """``contact_mm`` in the config; a Bluehill ``Thickness`` is the cylinder's height when the log
+    gives no height, and ``geometry_source`` says so."""
+    path = _preloaded_cyclic_csv(tmp_path / "thick.csv", cycles=1,
+                                 geometry_rows=("Dimensions : Diameter,18,mm", "Dimensions : Thickness,12,mm"))
+    cfg = tmp_path / "fit.yaml"
+    cfg.write_text("contact_mm: -0.3\nloop: false\nbootstrap: 0\n")
+    r = _invoke("fit-ogden", path, "--config", cfg, "-o", tmp_path / "out")
+    assert r.exit_code == 0, r.output
+    d = json.loads((tmp_path / "out" / "fit.json").read_text())
+    inp = d["inputs"][0]
+    assert inp["height_mm"] == 12.0 and "Thickness" in inp["geometry_source"]["height_mm"]
+    assert inp["contact_mm"] == -0.3 and inp["fitted_part"] == "whole record"
+    assert d["provenance"]["config"]["contact_mm"] == -0.3
+    assert abs(d["params"]["mu_pa"] / 720 - 1) < 0.03
+    r = _invoke("fit-ogden", path, "--contact-mm", "0.1", "--contact-mm", "0.2", "-o", tmp_path / "two")
+    assert r.exit_code == 2 and "one for every log" in r.output

@@ -181,6 +181,41 @@ def test_compression_positive_file_with_compressive_names(tmp_path):
     assert log.dialect["sign_from"] == "column name"
 
 
+def test_compressive_names_with_negative_values_follow_the_data(tmp_path):
+    """A template that names its channels 'Compressive ...' but writes Instron's negative values:
+    the data decide the sign (the name alone would make the ramp a retreat), and say so."""
+    p = tmp_path / "compressive_neg.csv"
+    force = [0.0] * 5 + [-0.1 * k for k in range(1, 16)]
+    p.write_text("Time,Compressive extension,Compressive load\n(s),(mm),(N)\n"
+                 + "".join(f"{0.1 * k:.1f},{-0.01 * k:.2f},{fk:.2f}\n" for k, fk in enumerate(force)))
+    log = read_machine_log(p)
+    assert (log.compression_sign, log.displacement_sign) == (-1, -1)
+    assert "named compressive" in log.dialect["sign_from"]
+    disp, f = log.compression()
+    assert disp[-1] > 0 and f[-1] > 0
+
+
+@pytest.mark.parametrize("magic, kind", [(b"PK\x03\x04\x14\x00\x06\x00", ".xlsx"),
+                                         (b"\xd0\xcf\x11\xe0\xa1\xb1\x1a\xe1\x00\x00", ".xls")])
+def test_excel_workbook_is_named_not_decoded(tmp_path, magic, kind):
+    p = tmp_path / f"log{kind}"
+    p.write_bytes(magic + b"\x00" * 64 + b"xl/worksheets/sheet1.xml")
+    with pytest.raises(InputError, match="Excel workbooks are not read: export the raw data as CSV from Bluehill") as e:
+        read_machine_log(p)
+    assert kind in str(e.value) and "utf-16" not in str(e.value)
+
+
+def test_geometry_unit_inside_the_key_and_thickness(tmp_path):
+    """``Specimen diameter (mm),18`` (the unit in the key) and ``Dimensions : Thickness``."""
+    rows = "Time,Extension,Load\n(s),(mm),(N)\n0.0,0.0,0.0\n0.1,-0.1,-0.5\n"
+    p = tmp_path / "unit_in_key.csv"
+    p.write_text("Specimen diameter (mm),18\nSpecimen height [cm],1.2\n\n" + rows)
+    assert read_machine_log(p).geometry == pytest.approx({"diameter_mm": 18.0, "height_mm": 12.0})
+    q = tmp_path / "thickness.csv"
+    q.write_text("Dimensions : Diameter,18,mm\nDimensions : Thickness,12,mm\n\n" + rows)
+    assert read_machine_log(q).geometry == pytest.approx({"diameter_mm": 18.0, "thickness_mm": 12.0})
+
+
 # ----------------------------------------------------------------- property: plain CSV
 
 TIME_UNITS = ["s", "sec", "ms", "min"]

@@ -15,6 +15,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from pydantic import Field
+
 from ..config import FitConfig, load_config, validate
 from ..errors import InputError, ProcessingError
 
@@ -27,17 +29,41 @@ WEIGHTING_TABLES = ("residual / sqrt(|P| * mean |P| of its mode) (stress error v
                     "every mode weighted equally, soft-L1 loss with f = 0.03")
 
 
-def _merge_config(config_path, options: dict) -> tuple[FitConfig, set]:
+class FitOgdenConfig(FitConfig):
+    """:class:`~bsipipe.config.FitConfig` with the keys only this command reads."""
+
+    contact_mm: float | list[float] | None = Field(
+        None, description="given contact: crosshead displacement (mm) past the record's first sample, positive in "
+                          "compression (fit.json's contact_mm frame; negative: before the first sample); one for "
+                          "every log or one per log")
+
+
+def _merge_config(config_path, options: dict) -> tuple[FitOgdenConfig, set]:
     """Options (not None) over the config file over FitConfig's defaults; the keys set explicitly."""
-    base = load_config(FitConfig, config_path) if config_path is not None else FitConfig()
+    base = load_config(FitOgdenConfig, config_path) if config_path is not None else FitOgdenConfig()
     data = base.model_dump()
     explicit = set(base.model_fields_set)
     for k, v in options.items():
         if v is not None:
             data[k] = v
             explicit.add(k)
-    cfg = validate(FitConfig, data, source=config_path or "command line")
+    cfg = validate(FitOgdenConfig, data, source=config_path or "command line")
     return cfg, explicit
+
+
+def _given_contacts(cfg: FitOgdenConfig, paths: Sequence[str]) -> list[float | None]:
+    """The given contact of each log (``None``: detect it)."""
+    given = cfg.contact_mm
+    if given is None:
+        return [None] * len(paths)
+    if isinstance(given, (int, float)):
+        return [float(given)] * len(paths)
+    if len(given) == 1:
+        return [float(given[0])] * len(paths)
+    if len(given) != len(paths):
+        raise InputError(f"{len(given)} contacts (--contact-mm / contact_mm) for {len(paths)} logs: give one for "
+                         f"every log, or one for all", path=paths[0], key="contact_mm")
+    return [float(g) for g in given]
 
 
 def _loading_speed(time_s: np.ndarray, disp_mm: np.ndarray, start: int) -> float | None:
@@ -52,7 +78,11 @@ def _loading_speed(time_s: np.ndarray, disp_mm: np.ndarray, start: int) -> float
 
 
 def _geometry(name: str, cfg: FitConfig, explicit: set, logfile) -> tuple[dict, dict]:
-    """Diameter and height for one log: options/config first, then the log's metadata."""
+    """Diameter and height for one log: options/config first, then the log's metadata.
+
+    A cylinder's height is its ``Thickness`` in Bluehill's compression templates
+    (``Dimensions : Thickness``): the metadata's thickness is the height where the log
+    states no height."""
     out, source = {}, {}
     for key in ("diameter_mm", "height_mm"):
         v = getattr(cfg, key)
@@ -60,6 +90,9 @@ def _geometry(name: str, cfg: FitConfig, explicit: set, logfile) -> tuple[dict, 
             out[key], source[key] = float(v), "option or config"
         elif key in logfile.geometry:
             out[key], source[key] = float(logfile.geometry[key]), "log metadata"
+        elif key == "height_mm" and "thickness_mm" in logfile.geometry:
+            out[key] = float(logfile.geometry["thickness_mm"])
+            source[key] = "log metadata: Thickness (a cylinder's height in Bluehill's compression templates)"
     missing = [k for k in ("diameter_mm", "height_mm") if k not in out]
     if missing:
         opts = " and ".join(f"--{k.replace('_', '-')}" for k in missing)
@@ -69,32 +102,70 @@ def _geometry(name: str, cfg: FitConfig, explicit: set, logfile) -> tuple[dict, 
     return out, source
 
 
-def _read_logs(paths: Sequence[str], cfg: FitConfig, explicit: set):
+def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig, explicit: set):
     from ..io.machine_log import read_machine_log
-    from ..mechanics.contact import detect_contact
+    from ..mechanics.contact import ContactNotInRecord, detect_contact, loading_ramps
     from ..mechanics.fit import LogData
 
     logs, inputs = [], []
-    for p in paths:
+    for p, given in zip(paths, _given_contacts(cfg, paths)):
         ml = read_machine_log(p)
         geo, geo_source = _geometry(str(p), cfg, explicit, ml)
         disp, force = ml.compression()
-        try:
-            contact = detect_contact(ml.time_s, disp, force)
-        except ProcessingError as e:
-            raise ProcessingError(f"contact detection: {e.message}", path=p) from None
-        except ValueError as e:
-            raise InputError(f"contact detection: {e}", path=p) from None
-        speed = _loading_speed(ml.time_s, disp, contact.index)
+        time_s = ml.time_s
+        ramps = loading_ramps(disp)
+        record = {"n_record": int(len(ml)), "loading_ramps": len(ramps)}
+        if len(ramps) > 1:
+            # A cyclic record: later cycles follow a loading history (preconditioning, set) that
+            # the first loading does not have; the first loading ramp is what is fitted.
+            stop = ramps[0][1]
+            time_s, disp, force = time_s[:stop], disp[:stop], force[:stop]
+            record["fitted_part"] = (f"first loading ramp only: samples 0-{stop - 1} of {len(ml)} "
+                                     f"(lines {ml.line_of(0)}-{ml.line_of(stop - 1)}; the record has "
+                                     f"{len(ramps)} loading ramps)")
+        else:
+            record["fitted_part"] = "whole record"
         name = Path(p).stem
-        # The detector's standard deviation and noise make the contact a refined nuisance
-        # parameter of every fit (bsipipe.mechanics.fit, "Contact").
-        logs.append(LogData(name, ml.time_s, disp, force, geo["diameter_mm"], geo["height_mm"],
-                            contact.displacement_mm, speed, contact.displacement_sd_mm, contact.force_noise_n))
+        if given is None:
+            try:
+                contact = detect_contact(time_s, disp, force)
+            except ContactNotInRecord as e:
+                raise ProcessingError(
+                    f"contact detection: {e.message}: give it with --contact-mm D (config key contact_mm), the "
+                    f"displacement in mm past the first sample, positive in compression, at which the platen "
+                    f"touched (negative: before the record began)", path=p) from None
+            except ProcessingError as e:
+                raise ProcessingError(f"contact detection: {e.message}", path=p) from None
+            except ValueError as e:
+                raise InputError(f"contact detection: {e}", path=p) from None
+            contact_mm, contact_info, start = contact.displacement_mm, contact.to_dict(), contact.index
+            # The detector's standard deviation and noise make the contact a refined nuisance
+            # parameter of every fit (bsipipe.mechanics.fit, "Contact").
+            sd, noise = contact.displacement_sd_mm, contact.force_noise_n
+            baseline = {"level_n": contact.baseline_n,
+                        "source": "the hinge fit's level before the detected contact"}
+        else:
+            contact_mm, sd, noise = given, None, None
+            start = int(np.argmax(disp >= given)) if np.any(disp >= given) else len(disp)
+            before = disp < given
+            contact_info = {"method": "given (--contact-mm / contact_mm)", "displacement_mm": given,
+                            "before_first_sample": bool(given < disp[0]),
+                            "extension_mm": float(ml.extension_mm[0] + ml.displacement_sign * given)}
+            if before.sum() >= 5:
+                baseline = {"level_n": float(np.median(force[before])),
+                            "source": f"median of the {int(before.sum())} samples before the given contact"}
+            else:
+                baseline = {"level_n": 0.0,
+                            "source": "assumed 0 N (the load cell zeroed unloaded): the record has "
+                                      f"{int(before.sum())} samples before the given contact, too few to measure it"}
+        speed = _loading_speed(time_s, disp, start)
+        logs.append(LogData(name, time_s, disp, force, geo["diameter_mm"], geo["height_mm"],
+                            contact_mm, speed, sd, noise))
         inputs.append({"path": str(p), "layout": ml.layout, "speed_mm_s": speed,
-                       "contact_mm": contact.displacement_mm, "n_points": int(len(ml)),
+                       "contact_mm": contact_mm, "n_points": int(len(disp)), **record,
                        "diameter_mm": geo["diameter_mm"], "height_mm": geo["height_mm"],
-                       "geometry_source": geo_source, "contact": contact.to_dict(),
+                       "geometry_source": geo_source, "contact": contact_info, "force_baseline": baseline,
+                       "sign_from": ml.dialect.get("sign_from"),
                        "specimen_label": ml.metadata.get("Specimen label")})
     return logs, inputs
 
@@ -226,24 +297,26 @@ def _fit_quality(final) -> list[dict]:
     return fit_warnings(final.param_names, final.cov, final.ci95, zero_checked=zero, logger=log)
 
 
-def _refined_contact(final, i: int, n_logs: int, detected_mm: float) -> dict:
+def _refined_contact(final, i: int, n_logs: int, detected_mm: float, given: bool = False) -> dict:
     """Log ``i``'s contact after the fit: the detected one plus the fitted shift, its 95 % interval,
     how it was refined (``"prior"``: within the detector's uncertainty; ``"free"``: the
     ``contact-offset`` effect) and the fitted toe half-width where there is one."""
     sfx = f"[{i}]" if n_logs > 1 else ""
     name = f"contact_offset_mm{sfx}"
     if name not in final.values:
-        return {"contact_refined_mm": detected_mm, "contact_refinement": "held at the detected contact"}
+        return {"contact_refined_mm": detected_mm,
+                "contact_refinement": f"held at the {'given' if given else 'detected'} contact"}
     shift = float(final.values[name])
     lo, hi = final.ci95[name]
     out = {"contact_refined_mm": detected_mm + shift, "contact_refined_ci95_mm": [detected_mm + lo, detected_mm + hi],
            "contact_shift_mm": shift,
            "contact_refinement": "free, with an uneven-top toe (contact-offset)" if final.spec.contact_offset
            else "within the detector's standard deviation (Gaussian prior)"}
-    toe = f"contact_toe_mm{sfx}"
-    if toe in final.values:
-        out["contact_toe_mm"] = float(final.values[toe])
-        out["contact_toe_ci95_mm"] = list(final.ci95[toe])
+    for key, ci_key in (("contact_toe_mm", "contact_toe_ci95_mm"), ("contact_toe_exponent", "contact_toe_exponent_ci95"),
+                        ("contact_toe_spread", "contact_toe_spread_ci95")):
+        if f"{key}{sfx}" in final.values:
+            out[key] = float(final.values[f"{key}{sfx}"])
+            out[ci_key] = list(final.ci95[f"{key}{sfx}"])
     return out
 
 
@@ -252,10 +325,14 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
         model: str | None = None, prony: int | None = None, boundary: str | None = None,
         loop: bool | None = None, width_csv: str | os.PathLike | None = None,
         config: str | os.PathLike | None = None, max_strain: float | None = None,
-        bootstrap: int | None = None, seed: int | None = None) -> dict:
+        bootstrap: int | None = None, seed: int | None = None,
+        contact_mm: float | Sequence[float] | None = None) -> dict:
     """Run fit-ogden; returns the ``fit.json`` dict (also written to ``out``).
 
-    ``None`` means "not given": the config's value, else FitConfig's default.
+    ``None`` means "not given": the config's value, else FitConfig's default.  ``contact_mm``
+    gives each log's contact (one value for all or one per log; :class:`FitOgdenConfig`)
+    instead of detecting it; the fit then holds it there (the loop's ``contact-offset`` may
+    still free it).
 
     Raises
     ------
@@ -264,6 +341,7 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
     ProcessingError
         No contact in a log, a fit that does not converge, parameters no FE card can hold (exit 1).
     """
+    from ..mechanics.effects import baseline_measurable
     from ..mechanics.fit import ForceModelSpec, add_bootstrap
     from ..provenance import ResultSet, provenance
     from ..report.fit_figure import fit_figure
@@ -271,12 +349,15 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
     paths = [str(p) for p in inputs]
     if not paths:
         raise InputError("no input file given (LOG ... or TABLE.csv --stress-stretch)")
+    if isinstance(contact_mm, (list, tuple)):
+        contact_mm = [float(c) for c in contact_mm] or None         # click's repeated option: () is "not given"
     cfg, explicit = _merge_config(config, {"diameter_mm": diameter_mm, "height_mm": height_mm, "model": model,
                                            "prony": prony, "boundary": boundary, "loop": loop,
-                                           "max_strain": max_strain, "bootstrap": bootstrap, "seed": seed})
+                                           "max_strain": max_strain, "bootstrap": bootstrap, "seed": seed,
+                                           "contact_mm": contact_mm})
     if stress_stretch:
         for opt, bad in (("--prony", cfg.prony), ("--boundary no-slip", cfg.boundary == "no-slip"),
-                         ("--width-csv", width_csv is not None)):
+                         ("--width-csv", width_csv is not None), ("--contact-mm", cfg.contact_mm is not None)):
             if bad:
                 raise InputError(f"{opt} does not apply to a stress-stretch table (it has no time or platens)",
                                  path=paths[0])
@@ -318,7 +399,17 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
     if kind == "logs":
         for i, (info, used) in enumerate(zip(input_info, final.used)):
             info["n_fitted"] = int(used.sum())
-            info.update(_refined_contact(final, i, len(input_info), info["contact_mm"]))
+            given = info["contact"].get("method", "").startswith("given")
+            info.update(_refined_contact(final, i, len(input_info), info["contact_mm"], given))
+            if final.spec.baseline_drift:
+                sfx = f"[{i}]" if len(input_info) > 1 else ""
+                info["force_baseline"]["model"] = (f"fitted (load-baseline-drift): {final.values['baseline_n' + sfx]:.4g} N "
+                                                   f"+ {final.values['drift_n_per_s' + sfx]:.3g} N/s")
+            else:
+                info["force_baseline"]["model"] = "0 N: the model takes the load cell's zero as the unloaded force"
+            if not baseline_measurable(data[i]):
+                info["force_baseline"]["model"] += (" (load-baseline-drift not tried: no sample before the contact "
+                                                    "measures the zero)")
     spec = final.spec
     result = {
         "model": spec.law,

@@ -66,6 +66,8 @@ _DELIMITERS = (",", ";", "\t", None)  # None: runs of white space
 _META = re.compile(r"^(?P<key>[^:]+?)\s+:\s+(?P<sub>.+)$")
 _GEOMETRY = re.compile(r"^(?:specimen |sample |initial |original |gauge )?"
                        r"(?P<what>diameter|height|thickness|width|length)$")
+_ZIP_MAGIC = b"PK\x03\x04"                            # .xlsx (and any zip archive)
+_OLE2_MAGIC = b"\xd0\xcf\x11\xe0\xa1\xb1\x1a\xe1"      # .xls
 _HEADER_SEARCH_LINES = 5000  # the names row comes after at most a preamble and results tables
 _SECTION_TABLES = ("results table", "results statistics", "test results", "statistics")
 
@@ -154,6 +156,11 @@ def _read_lines(path) -> tuple[list[str], dict[str, str]]:
         raise InputError(f"cannot read the file: {e.strerror or e}", path=path) from None
     if not raw.strip(b" \t\r\n\x00" + codecs.BOM_UTF8):
         raise InputError("the file is empty", path=path, line=1)
+    if raw.startswith((_ZIP_MAGIC, _OLE2_MAGIC)):
+        # An .xlsx is a zip archive, an .xls an OLE2 compound file: no text encoding reads them.
+        raise InputError(f"this is an Excel workbook ({'.xlsx' if raw.startswith(_ZIP_MAGIC) else '.xls'}), "
+                         f"not a text export: Excel workbooks are not read: export the raw data as CSV "
+                         f"from Bluehill", path=path)
     if raw.startswith(codecs.BOM_UTF8):
         encodings = ["utf-8-sig"]
     elif raw.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)):
@@ -470,7 +477,12 @@ def _read_preamble(lines: list[str], delim):
     def put(key: str, value: str, unit: str, line: int, full_key: str | None = None):
         k = key if key not in metadata or full_key is None else full_key
         metadata[k] = f"{value} {unit}".strip() if unit else value
-        m = _GEOMETRY.match(normalise_name(key))
+        base = key
+        if not unit:
+            # The unit inside the key: ``Specimen diameter (mm),18``.
+            base, key_unit = split_name_unit(key)
+            unit = key_unit or ""
+        m = _GEOMETRY.match(normalise_name(base))
         if m and unit:
             geometry_rows.append((m.group("what"), value, unit, line))
 
@@ -548,25 +560,40 @@ def _geometry(rows, decimal, path) -> dict[str, float]:
 def _compression_signs(extension, load, load_name, extension_name) -> tuple[int, int, str]:
     """The sign of compression on the load and extension channels.
 
-    A name saying ``compressive`` fixes the sign to +1.  Otherwise the record decides: the
-    sample most loaded away from the start, ``k = argmax |F - F_start|``, is where the
-    machine compressed hardest, so the sign of ``F_k - F_start`` is the load's sign of
-    compression and that of ``x_k - x_0`` the extension's.  A record with no load change
-    keeps Instron's convention (compression negative).
+    The record decides: the sample most loaded away from the start,
+    ``k = argmax |F - F_start|``, is where the machine compressed hardest, so the sign of
+    ``F_k - F_start`` is the load's sign of compression and that of ``x_k - x_0`` the
+    extension's.  A name saying ``compressive`` (Bluehill's ``Compressive load``,
+    ``Compressive extension``) means +1; where the data are clear and say the opposite (a
+    template that names the channel compressive but writes Instron's negative values), the
+    data win and ``sign_from`` says so.  A record with no load change keeps the name's sign,
+    else Instron's convention (compression negative).
     """
     start = float(np.median(load[: min(10, load.size)]))
     dev = load - start
     k = int(np.argmax(np.abs(dev)))
     scale = float(np.median(np.abs(np.diff(load)))) if load.size > 2 else 0.0
+    clear = abs(dev[k]) > 10 * scale and dev[k] != 0
+    data_load = int(np.sign(dev[k])) if clear else 0
+    step = extension[k] - extension[0]
+    data_disp = int(np.sign(step)) if clear and step != 0 else 0
+    notes = []
     if load_name.startswith("compressive"):
         load_sign, how = 1, "column name"
-    elif abs(dev[k]) > 10 * scale and dev[k] != 0:
-        load_sign, how = int(np.sign(dev[k])), "data"
+        if data_load == -1:
+            load_sign, how = -1, "data"
+            notes.append(f"'{load_name}' falls in compression")
+    elif data_load:
+        load_sign, how = data_load, "data"
     else:
         load_sign, how = -1, "default (no load change in the record)"
     if extension_name.startswith("compressive"):
         disp_sign = 1
+        if data_disp == -1:
+            disp_sign = -1
+            notes.append(f"'{extension_name}' falls in compression")
     else:
-        step = extension[k] - extension[0]
-        disp_sign = int(np.sign(step)) if step != 0 and how == "data" else load_sign
+        disp_sign = data_disp or load_sign
+    if notes:
+        how = f"data (the column is named compressive but {' and '.join(notes)}: the data's sign is used)"
     return load_sign, disp_sign, how

@@ -52,7 +52,8 @@ from scipy.optimize import brentq, minimize_scalar
 
 from ..errors import ProcessingError
 
-__all__ = ["Contact", "detect_contact", "WINDOW_NOISE_MULTIPLE", "CHECK_NOISE_MULTIPLE"]
+__all__ = ["Contact", "ContactNotInRecord", "detect_contact", "loading_ramps", "WINDOW_NOISE_MULTIPLE",
+           "CHECK_NOISE_MULTIPLE"]
 
 WINDOW_NOISE_MULTIPLE = 100.0
 #: The half window whose contact checks the whole window's for a systematic error.
@@ -62,6 +63,11 @@ _NO_CONTACT_SIGMAS = 5.0  # a final force less than this many noise levels above
 _MIN_PRECONTACT = 5       # fewer samples than this before contact: the record starts loaded
 _CHI2_95 = 3.841458820694124   # chi-square(1) 95 % quantile: the profile interval of d0
 _Z_95 = 1.959963984540054
+
+
+class ContactNotInRecord(ProcessingError):
+    """The record starts with the sample already loaded: the contact is before its first sample,
+    so it cannot be detected and must be given (``bsipipe fit-ogden --contact-mm``)."""
 
 
 @dataclass(frozen=True)
@@ -148,10 +154,10 @@ def detect_contact(time_s, displacement_mm, force_n) -> Contact:
         d0, degree, coef, sd = _fit_hinge(d[:end], f[:end])
         before = f[d < d0]
         if before.size < _MIN_PRECONTACT:
-            raise ProcessingError(
+            raise ContactNotInRecord(
                 f"the force is already rising at the start of the record (contact at or before "
                 f"displacement {d[0] + 0.0:.4g} mm, the first sample): the contact point is not in the "
-                f"record; give it explicitly")
+                f"record and must be given")
         new_baseline, new_noise = _robust_level(before, f)
         settled = (abs(new_noise - noise) <= 0.05 * noise
                    and abs(new_baseline - baseline) <= 0.5 * noise)
@@ -201,6 +207,42 @@ def _with_window_error(d: np.ndarray, f: np.ndarray, baseline: float, noise: flo
         return sd
     bias2 = max(0.0, (d0 - d_h) ** 2 - max(sd_h ** 2 - sd ** 2, 0.0))
     return float(np.sqrt(sd ** 2 + bias2))
+
+
+def loading_ramps(displacement_mm, turn_fraction: float = 0.01) -> list[tuple[int, int]]:
+    """The loading ramps of a record: ``[(start, stop), ...]``, samples ``start:stop`` each.
+
+    A ramp runs from a displacement minimum to the next maximum; a turn is a move against
+    the current direction by more than ``turn_fraction`` of the record's range (so encoder
+    noise and a hold's jitter are not turns).  A ramp-hold-unload test has one ramp; a cyclic
+    test one per cycle.  The first ramp ends where :func:`detect_contact`'s does.
+
+    >>> loading_ramps(np.array([0, 1, 2, 3, 2, 1, 0, 1, 2, 3, 3, 2.0]))
+    [(0, 4), (6, 10)]
+    """
+    d = np.asarray(displacement_mm, dtype=float)
+    if d.size < 2:
+        return []
+    step = turn_fraction * max(float(np.ptp(d)), 1e-300)
+    ramps: list[tuple[int, int]] = []
+    lo_i = hi_i = 0
+    rising = True
+    for i in range(1, d.size):
+        if rising:
+            if d[i] > d[hi_i]:
+                hi_i = i
+            elif d[hi_i] - d[i] > step:
+                if d[hi_i] - d[lo_i] > step:
+                    ramps.append((lo_i, hi_i + 1))
+                rising, lo_i = False, i
+        else:
+            if d[i] < d[lo_i]:
+                lo_i = i
+            elif d[i] - d[lo_i] > step:
+                rising, hi_i = True, i
+    if rising and d[hi_i] - d[lo_i] > step:
+        ramps.append((lo_i, hi_i + 1))
+    return ramps
 
 
 def _loading_end(d: np.ndarray) -> int:

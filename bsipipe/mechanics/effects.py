@@ -34,8 +34,8 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from ..loop import Effect, LoopReport, SelectionRule, run_loop
-from .fit import (ForceModelSpec, LogData, contact_compression, fit_logs, fit_tables, parameter_names,
-                  predict_force)
+from .fit import (FLAT_TOE, ForceModelSpec, LogData, contact_compression, fit_logs, fit_tables, parameter_names,
+                  predict_force, toe_params)
 
 log = logging.getLogger(__name__)
 
@@ -68,14 +68,16 @@ VISCOELASTIC = Effect(
 CONTACT_OFFSET = Effect(
     "contact-offset",
     "The true contact differs from the detected one by more than the detector's uncertainty: an "
-    "uneven top surface the platen meets at its highest point first and flattens over 2 c of travel "
-    "(contact_compression: delta = (x + c)^2 / 4c for |x| < c), so the force rises early and slowly. "
+    "uneven top surface the platen meets at its highest point first and flattens over 2 c of travel, "
+    "the contact area growing as a power p of the indentation (1: a dome or a tilted face), the "
+    "touching part carrying between its own compression (spread s = 0, a bed of independent columns) "
+    "and the whole travel (s = 1) (contact_compression), so the force rises early and slowly. "
     "Frees each log's contact shift (the declared model holds it within the detector's standard "
-    "deviation) and fits the toe half-width c.",
+    "deviation) and fits the toe's half-width c, exponent p and spread s.",
     "Residual concentrated just after contact and changing sign there (correlates with nominal "
     "strain at small strain), smaller at large strain; a contact shift many detector standard "
     "deviations from the detected contact.",
-    lambda s: None if s.contact_offset else replace(s, contact_offset=True), ("contact_offset_mm", "contact_toe_mm"))
+    lambda s: None if s.contact_offset else replace(s, contact_offset=True), ("contact_offset_mm", "contact_toe_mm", "contact_toe_exponent", "contact_toe_spread"))
 
 BASELINE_DRIFT = Effect(
     "load-baseline-drift",
@@ -118,6 +120,8 @@ def mechanics_effects(*, boundary_declared: bool, width: "WidthSeries | None" = 
                       logs: Sequence[LogData] = ()) -> list[Effect]:
     """fit-ogden's candidate effects for machine logs, in the order they are tried.
 
+    ``load-baseline-drift`` is not a candidate when a log has no samples before its contact
+    (:func:`baseline_measurable`): its load cell's zero is then taken as 0 N.
     ``no-slip-platens`` is a candidate only when the command line did not declare the
     boundary and the data can show it: a width series (of ``logs[width.log_index]``, whose
     evidence :func:`width_evidence` then carries), or specimens whose height/diameter
@@ -127,6 +131,14 @@ def mechanics_effects(*, boundary_declared: bool, width: "WidthSeries | None" = 
     new shape costs minutes of FE to tabulate): declare ``--boundary`` instead.
     """
     effects = [VISCOELASTIC, CONTACT_OFFSET, BASELINE_DRIFT, COMPLIANCE, MODEL_ORDER]
+    unzeroed = [lg.name for lg in logs if not baseline_measurable(lg)]
+    if unzeroed:
+        # On a ramp at constant speed an offset and a drift in time are a force linear in the
+        # displacement: with no unloaded sample they would take the tissue's response.
+        effects.remove(BASELINE_DRIFT)
+        log.info("loop: load-baseline-drift is not tried: %s ha%s fewer than %d samples before the contact, so "
+                 "the load cell's zero cannot be measured (taken as 0 N)", ", ".join(unzeroed),
+                 "s" if len(unzeroed) == 1 else "ve", MIN_UNLOADED_SAMPLES)
     if not boundary_declared:
         aspects = [lg.aspect for lg in logs]
         spread = max(aspects) / min(aspects) if aspects else 1.0
@@ -137,6 +149,16 @@ def mechanics_effects(*, boundary_declared: bool, width: "WidthSeries | None" = 
                      "differ by %.1f %% (< %.0f %%); declare --boundary no-slip if the platens held the specimen",
                      100 * (spread - 1), 100 * (NO_SLIP_MIN_ASPECT_SPREAD - 1))
     return effects
+
+
+#: Fewest samples before the contact that measure the load cell's zero (``load-baseline-drift``).
+MIN_UNLOADED_SAMPLES = 5
+
+
+def baseline_measurable(lg: LogData) -> bool:
+    """Whether ``lg`` has samples before its contact (:data:`MIN_UNLOADED_SAMPLES`) to measure the load
+    cell's zero: not so for a record that starts loaded, its contact given before the first sample."""
+    return int(np.count_nonzero(lg.displacement_mm < lg.contact_mm)) >= MIN_UNLOADED_SAMPLES
 
 
 #: Least ratio of the largest to the smallest height/diameter over the logs for which the
@@ -176,9 +198,9 @@ def _stretch_at(log_: LogData, values: Mapping, spec: ForceModelSpec, time_s: np
     d = np.interp(time_s, log_.time_s, log_.displacement_mm)
     f = np.interp(time_s, log_.time_s, log_.force_n)
     off = float(values.get("contact_offset_mm", 0.0))       # present where the fit refined the contact
-    toe = float(values.get("contact_toe_mm", 0.0)) if spec.contact_offset else 0.0
+    c_toe, p_toe, s_toe = toe_params(values) if spec.contact_offset else FLAT_TOE
     c = float(values.get("compliance_mm_per_n", 0.0)) if spec.compliance else 0.0
-    delta = contact_compression(d - log_.contact_mm - off - c * f, toe)
+    delta = contact_compression(d - log_.contact_mm - off - c * f, c_toe, exponent=p_toe, spread=s_toe)
     return np.clip(1.0 - delta / log_.height_mm, 0.05, 1.0)
 
 

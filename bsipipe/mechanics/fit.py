@@ -16,11 +16,13 @@ sample), detected contact :math:`d_c`, height :math:`H` and diameter :math:`D`:
 
 :math:`P` is the law's homogeneous uniaxial nominal stress (Pa, negative in compression), or
 the bonded-platen FE force per area of :mod:`bsipipe.mechanics.noslip` for
-``boundary='no-slip'`` (one-term Ogden only).  :math:`\delta(x; c)` is
-:func:`contact_compression`: an uneven top face met first at :math:`x = -c` and flat from
-:math:`x = c`.  The effects of :class:`ForceModelSpec` switch on the free contact shift and
-the toe (``contact_offset``: :math:`\Delta_c` = ``contact_offset_mm`` and :math:`c` =
-``contact_toe_mm``, per log), the load-cell baseline and drift :math:`b_0, b_1`
+``boundary='no-slip'`` (one-term Ogden only).  :math:`\delta(x; c, p, s)` is
+:func:`contact_compression`: an uneven top face met over :math:`2c` of travel, its contact
+area growing as the power :math:`p` of the indentation, the touching part carrying between
+its own compression (:math:`s = 0`) and the whole travel (:math:`s = 1`).  The effects of
+:class:`ForceModelSpec` switch on the free contact shift and the toe (``contact_offset``:
+:math:`\Delta_c` = ``contact_offset_mm``, :math:`c` = ``contact_toe_mm``, :math:`p` =
+``contact_toe_exponent``, :math:`s` = ``contact_toe_spread``, per log), the load-cell baseline and drift :math:`b_0, b_1`
 (``baseline_n``, ``drift_n_per_s``, per log) and the machine compliance :math:`C`
 (``compliance_mm_per_n``, shared: one frame).  Compliance makes the model implicit in
 :math:`F_t`; it is solved by Newton's method per sample (exact without Prony terms; with them
@@ -145,6 +147,17 @@ _G_MAX = 0.98
 TABLE_LOSS_SCALE = 0.03
 _MIN_STRETCH = 0.05          # the model clips the stretch here (a 95 % compression is no log's range)
 _TOE_START_MM = 0.05         # start of the uneven-top half-width c (contact_offset)
+#: The toe's parameters (:func:`contact_compression`'s c, p, s), per log under ``contact_offset``.
+TOE_NAMES = ("contact_toe_mm", "contact_toe_exponent", "contact_toe_spread")
+#: Bounds of the area exponent p: contact area from nearly all at once (0.25) to a narrow ridge (6).
+TOE_EXPONENT_BOUNDS = (0.25, 6.0)
+_TOE_START = {"contact_toe_mm": _TOE_START_MM, "contact_toe_exponent": 1.0, "contact_toe_spread": 0.5}
+
+
+def toe_params(values: Mapping) -> tuple[float, float, float]:
+    """``(c, p, s)`` of :func:`contact_compression` from plain names (a flat top where absent)."""
+    return (float(values.get("contact_toe_mm", 0.0)), float(values.get("contact_toe_exponent", 1.0)),
+            float(values.get("contact_toe_spread", 0.0)))
 
 
 def contact_prior_residual(z) -> np.ndarray:
@@ -360,7 +373,7 @@ def parameter_names(spec: ForceModelSpec, logs: "int | Sequence[LogData]" = 1) -
     is known exactly (no detector uncertainty, so no contact shift unless ``contact_offset``).
 
     >>> parameter_names(ForceModelSpec(prony=1, contact_offset=True), 2)[2:]
-    ['g1', 'tau1_s', 'contact_offset_mm[0]', 'contact_offset_mm[1]', 'contact_toe_mm[0]', 'contact_toe_mm[1]']
+    ['g1', 'tau1_s', 'contact_offset_mm[0]', 'contact_offset_mm[1]', 'contact_toe_mm[0]', 'contact_toe_mm[1]', 'contact_toe_exponent[0]', 'contact_toe_exponent[1]', 'contact_toe_spread[0]', 'contact_toe_spread[1]']
     """
     seq = [None] * logs if isinstance(logs, (int, np.integer)) else list(logs)
     n_logs = len(seq)
@@ -368,7 +381,7 @@ def parameter_names(spec: ForceModelSpec, logs: "int | Sequence[LogData]" = 1) -
     sfx = (lambda i: f"[{i}]") if n_logs > 1 else (lambda i: "")
     names += [f"contact_offset_mm{sfx(i)}" for i, lg in enumerate(seq) if _shifted(spec, lg)]
     if spec.contact_offset:
-        names += [f"contact_toe_mm{sfx(i)}" for i in range(n_logs)]
+        names += [f"{k}{sfx(i)}" for k in TOE_NAMES for i in range(n_logs)]
     if spec.baseline_drift:
         names += [x for i in range(n_logs) for x in (f"baseline_n{sfx(i)}", f"drift_n_per_s{sfx(i)}")]
     if spec.compliance:
@@ -419,35 +432,62 @@ def _stress_function(spec: ForceModelSpec, law: Law, tissue: np.ndarray, aspect:
     return lambda lam: ogden_nominal_stress(lam, mus, alphas, "uniaxial")
 
 
-def contact_compression(x_mm, toe_mm: float = 0.0, with_derivative: bool = False):
+def contact_compression(x_mm, toe_mm: float = 0.0, with_derivative: bool = False, exponent: float = 1.0,
+                        spread: float = 0.0):
     r"""Bulk compression (mm) of a specimen with an uneven top, at platen travel ``x`` past contact.
+
+    The top face is met over a travel :math:`w = 2c` (``toe_mm`` is :math:`c`): at travel
+    :math:`v` past the first touch the fraction of the face in contact is
+    :math:`a(v) = (v / w)^p` (``exponent`` :math:`p`: 1 for a dome or a tilted face, whose
+    contact area grows linearly with the indentation; 2 for a cone; large for a face flat but
+    for a narrow ridge), and the force is that of a flat specimen compressed by
 
     .. math::
 
-        \delta(x; c) = \begin{cases} 0 & x \le -c \\ (x + c)^2 / (4c) & |x| < c \\ x & x \ge c \end{cases}
+        \delta(v) = \gamma\, w\, (v / w)^{p + 1} \quad (0 \le v \le w), \qquad
+        \delta(v) = v - (1 - \gamma)\, w \quad (v \ge w), \qquad
+        \gamma = 1 - (1 - s) \frac{p}{p + 1},
 
-    The platen first touches the highest point at ``x = -c`` and the whole face at ``x = c``;
-    beyond, the specimen behaves as a flat one touched at ``x = 0`` (the contact the fit
-    reports).  ``c = 0`` is a flat top, :math:`\max(x, 0)`.  With ``with_derivative`` also
+    :math:`a(v)` times the compression the touching part carries.  ``spread`` :math:`s` says
+    how much of the travel that is: :math:`s = 0`, each touching column carries only its own
+    compression :math:`v - h` (a Winkler bed, :math:`\delta = \int_0^v a`, smooth at full
+    contact); :math:`s = 1`, the touching part carries the whole travel :math:`v` (the
+    tissue around it is drawn down with it, :math:`\delta = a v`; the force meets a flat
+    top's touched at first contact).  The travel ``x`` is measured from the flat-equivalent
+    contact, where the large-strain part extrapolates to zero: :math:`v = x + (1 - \gamma) w`.
+    ``p = 1, s = 0`` is the quadratic toe :math:`(x + c)^2 / 4c` for :math:`|x| < c`;
+    ``c = 0`` is a flat top, :math:`\max(x, 0)`.  With ``with_derivative`` also
     :math:`d\delta / dx`.
 
     >>> [round(float(v), 6) for v in contact_compression(np.array([-0.3, 0.0, 0.1, 0.3]), 0.2)]
     [0.0, 0.05, 0.1125, 0.3]
+    >>> [round(float(v), 6) for v in contact_compression(np.array([0.0, 0.2, 0.4, 0.5]), 0.2, spread=1.0)]
+    [0.0, 0.1, 0.4, 0.5]
     """
     x = np.asarray(x_mm, dtype=float)
     c = float(toe_mm)
     if c <= 0.0:
         delta, slope = np.maximum(x, 0.0), (x > 0).astype(float)
     else:
-        u = np.clip(x + c, 0.0, 2.0 * c)
-        delta = np.where(x >= c, x, u * u / (4.0 * c))
-        slope = u / (2.0 * c)
+        w, p = 2.0 * c, float(exponent)
+        gamma = 1.0 - (1.0 - float(spread)) * p / (p + 1.0)
+        s = np.clip((x + (1.0 - gamma) * w) / w, 0.0, 1.0)        # v / w in the toe
+        full = s >= 1.0
+        delta = np.where(full, x, gamma * w * s ** (p + 1.0))
+        slope = np.where(full, 1.0, gamma * (p + 1.0) * s ** p)
     return (delta, slope) if with_derivative else delta
 
 
-def _elastic_force(stress, x_mm, height_mm, area_m2, toe_mm=0.0, with_derivative=False):
-    """Elastic force (N, + in compression) at platen travel ``x`` past contact, optionally dF/dx (N/mm)."""
-    delta, slope = contact_compression(x_mm, toe_mm, with_derivative=True)
+#: A flat top: no toe (``(contact_toe_mm, contact_toe_exponent, contact_toe_spread)``).
+FLAT_TOE = (0.0, 1.0, 0.0)
+
+
+def _elastic_force(stress, x_mm, height_mm, area_m2, toe=FLAT_TOE, with_derivative=False):
+    """Elastic force (N, + in compression) at platen travel ``x`` past contact, optionally dF/dx (N/mm).
+
+    ``toe`` is ``(c, p, s)`` of :func:`contact_compression`."""
+    c, p, s = toe
+    delta, slope = contact_compression(x_mm, c, with_derivative=True, exponent=p, spread=s)
     lam = np.clip(1.0 - delta / height_mm, _MIN_STRETCH, 1.0)
     f = -stress(lam) * area_m2
     if not with_derivative:
@@ -457,15 +497,15 @@ def _elastic_force(stress, x_mm, height_mm, area_m2, toe_mm=0.0, with_derivative
     return f, dp * area_m2 / height_mm * slope
 
 
-def _tissue_force(time_s, x_mm, height_mm, area_m2, stress, g, tau, compliance, toe_mm=0.0, max_iter=60):
+def _tissue_force(time_s, x_mm, height_mm, area_m2, stress, g, tau, compliance, toe=FLAT_TOE, max_iter=60):
     """QLV[F_e(delta(x - C F))] solved for F (see the module docstring)."""
     if compliance <= 0.0:
-        fe, _ = _elastic_force(stress, x_mm, height_mm, area_m2, toe_mm)
+        fe, _ = _elastic_force(stress, x_mm, height_mm, area_m2, toe)
         return qlv_response(time_s, fe, g, tau) if len(g) else fe
     f = np.zeros_like(x_mm)
     scale = None
     for _ in range(max_iter):
-        fe, dfe = _elastic_force(stress, x_mm - compliance * f, height_mm, area_m2, toe_mm, with_derivative=True)
+        fe, dfe = _elastic_force(stress, x_mm - compliance * f, height_mm, area_m2, toe, with_derivative=True)
         target = qlv_response(time_s, fe, g, tau) if len(g) else fe
         r = f - target
         f = f - r / (1.0 + compliance * np.maximum(dfe, 0.0))
@@ -475,7 +515,8 @@ def _tissue_force(time_s, x_mm, height_mm, area_m2, stress, g, tau, compliance, 
     return f
 
 
-def _log_force(log_: LogData, spec: ForceModelSpec, law: Law, tissue, g, tau, offset, compliance, b0, b1, toe=0.0):
+def _log_force(log_: LogData, spec: ForceModelSpec, law: Law, tissue, g, tau, offset, compliance, b0, b1,
+               toe=FLAT_TOE):
     stress = _stress_function(spec, law, tissue, log_.aspect)
     x = log_.displacement_mm - log_.contact_mm - offset
     f = _tissue_force(log_.time_s, x, log_.height_mm, log_.area_m2, stress, g, tau, compliance, toe)
@@ -489,7 +530,8 @@ def predict_force(log: LogData, spec: ForceModelSpec, params: Mapping) -> np.nda
 
     ``params`` holds the law's parameters, the Prony terms (``"prony"`` list or flat
     ``g1``/``tau1_s``) and the effects' parameters under their plain names
-    (``contact_offset_mm``, ``contact_toe_mm``, ``baseline_n``, ``drift_n_per_s``,
+    (``contact_offset_mm``, ``contact_toe_mm``, ``contact_toe_exponent``, ``contact_toe_spread``,
+    ``baseline_n``, ``drift_n_per_s``,
     ``compliance_mm_per_n``; :meth:`FitResult.log_params` gives them for one log of a joint
     fit).  Effects the spec does not switch on are ignored; the contact shift applies where
     the fit refines it (``contact_offset``, or a detected contact with ``refine_contact``).
@@ -500,7 +542,7 @@ def predict_force(log: LogData, spec: ForceModelSpec, params: Mapping) -> np.nda
     g = np.array([p[f"g{i}"] for i in range(1, spec.prony + 1)], dtype=float)
     tau = np.array([p[f"tau{i}_s"] for i in range(1, spec.prony + 1)], dtype=float)
     offset = float(p.get("contact_offset_mm", 0.0)) if _shifted(spec, log) else 0.0
-    toe = float(p.get("contact_toe_mm", 0.0)) if spec.contact_offset else 0.0
+    toe = toe_params(p) if spec.contact_offset else FLAT_TOE
     c = float(p.get("compliance_mm_per_n", 0.0)) if spec.compliance else 0.0
     b0 = float(p.get("baseline_n", 0.0)) if spec.baseline_drift else 0.0
     b1 = float(p.get("drift_n_per_s", 0.0)) if spec.baseline_drift else 0.0
@@ -640,6 +682,10 @@ class _LogProblem(_Problem):
         if spec.contact_offset:
             for i, lg in enumerate(logs):
                 pars.append(_Par(f"contact_toe_mm{sfx(i)}", 0.0, 0.1 * lg.height_mm, 0.02))
+            for i, lg in enumerate(logs):
+                pars.append(_Par(f"contact_toe_exponent{sfx(i)}", *TOE_EXPONENT_BOUNDS, 0.3))
+            for i, lg in enumerate(logs):
+                pars.append(_Par(f"contact_toe_spread{sfx(i)}", 0.0, 1.0, 0.2))
         if spec.baseline_drift:
             for i, (lg, d) in enumerate(zip(logs, self.data)):
                 span_i = max(float(lg.time_s[-1] - lg.time_s[0]), 1e-9)
@@ -661,7 +707,8 @@ class _LogProblem(_Problem):
         g = np.array([values[f"g{j}"] for j in range(1, spec.prony + 1)])
         tau = np.array([values[f"tau{j}_s"] for j in range(1, spec.prony + 1)])
         off = values[f"contact_offset_mm{sfx}"] if _shifted(spec, self.logs[i]) else 0.0
-        toe = values[f"contact_toe_mm{sfx}"] if spec.contact_offset else 0.0
+        toe = (values[f"contact_toe_mm{sfx}"], values[f"contact_toe_exponent{sfx}"],
+               values[f"contact_toe_spread{sfx}"]) if spec.contact_offset else FLAT_TOE
         b0 = values[f"baseline_n{sfx}"] if spec.baseline_drift else 0.0
         b1 = values[f"drift_n_per_s{sfx}"] if spec.baseline_drift else 0.0
         c = values["compliance_mm_per_n"] if spec.compliance else 0.0
@@ -728,10 +775,10 @@ class _LogProblem(_Problem):
         for p in self.pars:
             if p.name.startswith("contact_offset_mm"):
                 v[p.name] = 0.0
-            elif p.name.startswith("contact_toe_mm"):
-                # Not 0: at a flat top the force is flat in c to first order, so a fit started
-                # there would stay.
-                v[p.name] = _TOE_START_MM
+            elif p.name.startswith(TOE_NAMES):
+                # c not 0: at a flat top the force is flat in c to first order, so a fit started
+                # there would stay; p and s start mid-range (a dome, half the load spread).
+                v[p.name] = _TOE_START[p.name.split("[")[0]]
             elif p.name.startswith(("baseline_n", "drift_n_per_s")):
                 v[p.name] = 0.0
             elif p.name == "compliance_mm_per_n":
