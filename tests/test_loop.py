@@ -252,6 +252,14 @@ def test_a_residual_at_the_measured_noise_level_stops_the_loop():
     rep = run_loop(lambda s: fit_toy(logs, s), ToySpec(), EFFECTS, covariates=covariates(logs), unit="y",
                    noise_rms=SIGMA)
     assert rep.effects == ["curvature"]
-    assert "noise level" in rep.stopped_because
+    assert rep.stopped_because.startswith("the residual is noise")
     assert all(t["reason"] == "the residual is already noise" for t in rep.tried[-1])
     assert rep.to_dict()["residual_structure"]["rmse_over_noise"] < 1.05
+    # a residual at or below the measured noise is noise whatever its tests say: nothing is
+    # tried on the residual alone
+    floor = 1.001 * rep.final.rmse
+    rep = run_loop(lambda s: fit_toy(logs, s), ToySpec(), EFFECTS, covariates=covariates(logs), unit="y",
+                   noise_rms=floor)
+    assert rep.effects == ["curvature"]
+    assert "at or below the measured noise level" in rep.stopped_because
+    assert all(t["reason"] == "the residual is already noise" for t in rep.tried[-1])

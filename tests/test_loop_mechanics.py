@@ -109,10 +109,9 @@ def test_hidden_contact_offset(seed):
 def test_small_toe_is_named_or_absorbed_by_the_contact_prior():
     """c = 0.2 mm: the declared model's refined contact (a prior of a few detector standard
     deviations' reach) takes most of the 0.02-0.07 mm between the detected and the true
-    contact, so on some seeds the residual is at the noise already (RMSE within 5 % of the
-    measured noise: the loop's rule then adds nothing on the residual alone); where it is
-    not, ``contact-offset`` is named.  Either way mu and alpha are within the stated
-    tolerance and nothing else is added."""
+    contact, so on some seeds the residual is at the noise already (its tests say noise, or
+    no candidate lowers it by the rule's 5 %); where it is not, ``contact-offset`` is named.
+    Either way mu and alpha are within the stated tolerance and nothing else is added."""
     named = 0
     for seed in range(4):
         lg, truth = make_log(contact_offset_mm=0.2, rate_hz=5.0, seed=seed)
@@ -121,7 +120,8 @@ def test_small_toe_is_named_or_absorbed_by_the_contact_prior():
               f"true {truth['contact_mm']:.3f}):", summary(rep))
         assert rep.effects in ([], ["contact-offset"])
         if not rep.effects:
-            assert "noise" in rep.stopped_because
+            assert ("noise" in rep.stopped_because
+                    or all(t["passes"] is False for t in rep.tried[-1])), rep.stopped_because
         named += bool(rep.effects)
         assert rep.final.rmse < 1.5 * NOISE_N
         check_one_term(rep.final.params, truth)

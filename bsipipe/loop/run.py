@@ -39,11 +39,12 @@ Selection rule (:class:`SelectionRule`, defaults):
   data; the one the stage lists first (its most common mechanism) is kept, and the
   runner-up is reported.
 - The loop stops when no candidate passes; when the residual is already noise
-  (:func:`~bsipipe.loop.residual_structure` at family-wise level 1 %), only effects with
-  outside evidence are tried, so data without a hidden effect gets none.  An RMSE at the
-  stage's independently measured noise level does not by itself end the loop: a residual
-  whose pattern is structured (a second relaxation time, a machine's compliance) can be a
-  few per cent of the RMSE and still bias the parameters far outside their intervals.
+  (:func:`~bsipipe.loop.residual_structure` at family-wise level 1 %, or, where the stage
+  measures its noise level independently of any model, an RMSE at or below it), only effects
+  with outside evidence are tried, so data without a hidden effect gets none.  An RMSE a
+  few per cent above the measured noise does not by itself end the loop: a residual whose
+  pattern is structured (a second relaxation time, a machine's compliance) can be that
+  small and still bias the parameters far outside their intervals.
 """
 
 from __future__ import annotations
@@ -355,9 +356,9 @@ def run_loop(fit: Callable[[Any], Any], spec0, candidates: Sequence[Effect], *,
         Unit suffix of the error names (``rmse_n``, ``rmse_px``).
     noise_rms : float, optional
         The measurement noise level, estimated independently of any model (e.g. from
-        sample-to-sample differences), reported with the loop; a residual within
-        ``rmse_gain_min`` of it is at the floor in size (named in the stop reason), but only
-        its structure tests decide that it is noise.
+        sample-to-sample differences), reported with the loop; a residual whose RMSE is at or
+        below it is noise (only effects with outside evidence are tried); above it, only the
+        residual's structure tests decide.
 
     Returns
     -------
@@ -367,13 +368,13 @@ def run_loop(fit: Callable[[Any], Any], spec0, candidates: Sequence[Effect], *,
     state = fitter.state(spec0)
     report = LoopReport(unit=unit, rule=rule, baseline=state, noise_rms=noise_rms)
     for _ in range(max_steps):
-        at_floor = noise_rms is not None and state.rmse <= (1.0 + rule.rmse_gain_min) * noise_rms
-        # At the noise floor in size, the residual is noise only if its pattern says so too: a
-        # structured residual (a second relaxation time, a machine's compliance) can be a few %
-        # of the RMSE and still bias the parameters far outside their intervals.  The
-        # candidates still need delta BIC, the RMSE gain and the held-out check; the floor is
-        # reported (the stop reason, ``noise_rms``).
-        noise = state.structure["noise"]
+        # Below the measured noise level there is nothing left to explain.  Just above it the
+        # residual is noise only if its pattern says so too: a structured residual (a second
+        # relaxation time, a machine's compliance) can be a few % of the RMSE and still bias
+        # the parameters far outside their intervals; the candidates still need delta BIC,
+        # the RMSE gain and the held-out check.
+        at_floor = noise_rms is not None and state.rmse <= noise_rms
+        noise = state.structure["noise"] or at_floor
         round_: list[dict] = []
         passing: list[tuple[tuple, Effect, LoopState, dict]] = []
         for eff in candidates:
@@ -417,7 +418,7 @@ def run_loop(fit: Callable[[Any], Any], spec0, candidates: Sequence[Effect], *,
                     entry["runner_up"] = {"effect": nxt[1].name, "delta_bic": nxt[3]["delta_bic"]}
         report.tried.append(round_)
         if kept is None:
-            floor = f" (its RMSE within {100 * rule.rmse_gain_min:g} % of the noise level)" if at_floor else ""
+            floor = " (its RMSE at or below the measured noise level)" if at_floor else ""
             report.stopped_because = (f"the residual is noise{floor} and no effect has outside evidence" if noise
                                       else f"the residual has structure no candidate explains with strong evidence{floor}"
                                       if round_ else "no candidate can augment the model further")
