@@ -104,7 +104,8 @@ def fit_ogden(inputs, out, **opts) -> None:
     """Fit Ogden-family (hyper)viscoelastic laws to machine logs or stress-stretch tables."""
     from .commands import fit_ogden as command
 
-    res = command.run(inputs, out=out, **opts)
+    obj = click.get_current_context().find_root().obj or {}
+    res = command.run(inputs, out=out, progress=sys.stderr.isatty() and not obj.get("quiet", 0), **opts)
     p = res["params"]
     click.echo(f"{res['model']}: " + ", ".join(f"{k} = {v:.5g}" for k, v in p.items() if isinstance(v, float))
                + f"; rmse {res['metrics'].get('rmse_n', res['metrics'].get('rmse_pa')):.4g}; wrote {out}/fit.json")

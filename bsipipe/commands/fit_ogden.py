@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -326,7 +327,7 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
         loop: bool | None = None, width_csv: str | os.PathLike | None = None,
         config: str | os.PathLike | None = None, max_strain: float | None = None,
         bootstrap: int | None = None, seed: int | None = None,
-        contact_mm: float | Sequence[float] | None = None) -> dict:
+        contact_mm: float | Sequence[float] | None = None, progress: bool = False) -> dict:
     """Run fit-ogden; returns the ``fit.json`` dict (also written to ``out``).
 
     ``None`` means "not given": the config's value, else FitConfig's default.  ``contact_mm``
@@ -384,8 +385,14 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
             raise ProcessingError(f"the {final.spec.describe()} fit did not converge: {final.message}",
                                   path=paths[0])
         if cfg.bootstrap:
-            final_boot = add_bootstrap(final, data, n=cfg.bootstrap, seed=cfg.seed,
-                                       max_strain=cfg.max_strain if kind == "logs" else None)
+            # one refit per resample: seconds on a short log, many minutes on a long record with
+            # a Prony series and compliance; a bar on a terminal says where it is
+            from tqdm import tqdm
+            with tqdm(total=cfg.bootstrap, desc="bootstrap", unit="refit", file=sys.stderr, leave=False,
+                      disable=not progress, mininterval=0.5) as bar:
+                final_boot = add_bootstrap(final, data, n=cfg.bootstrap, seed=cfg.seed,
+                                           max_strain=cfg.max_strain if kind == "logs" else None,
+                                           progress=bar.update)
         else:
             final_boot = final
     except (ArithmeticError, ValueError, np.linalg.LinAlgError) as e:

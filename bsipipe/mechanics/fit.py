@@ -1147,8 +1147,9 @@ def _solve(problem: _Problem, starts: list[dict], *, seed: int, bootstrap: int) 
     return out
 
 
-def _bootstrap(problem: _Problem, values: Mapping, n_boot: int, seed: int):
-    """Residual bootstrap: data* = model + residuals resampled within each log / mode."""
+def _bootstrap(problem: _Problem, values: Mapping, n_boot: int, seed: int, progress=None):
+    """Residual bootstrap: data* = model + residuals resampled within each log / mode
+    (``progress``: called once per refit, e.g. a progress bar's ``update``)."""
     rng = np.random.default_rng(seed)
     pred = [p[m] if problem.kind == "logs" else p for p, m in zip(problem.predict(values), problem.used)]
     raw = problem.raw_residuals(values)
@@ -1161,6 +1162,8 @@ def _bootstrap(problem: _Problem, values: Mapping, n_boot: int, seed: int):
             continue
         if res.status > 0:
             draws.append(problem.canonical(res.x))
+        if progress is not None:
+            progress()
     if len(draws) < max(10, n_boot // 2):
         return None, {"n": n_boot, "n_ok": len(draws), "seed": seed}
     d = np.array(draws)
@@ -1258,18 +1261,20 @@ def fit_tables(tables, law: str = "ogden", *, seed: int = 0, bootstrap: int = 0)
     return _solve(problem, problem.global_starts(), seed=seed, bootstrap=bootstrap)
 
 
-def add_bootstrap(result: FitResult, data, *, n: int, seed: int = 0, max_strain: float | None = None) -> FitResult:
+def add_bootstrap(result: FitResult, data, *, n: int, seed: int = 0, max_strain: float | None = None,
+                  progress=None) -> FitResult:
     """``result`` with its residual-bootstrap check added (``ci95_bootstrap``, ``bootstrap``).
 
     ``data`` is what ``result`` was fitted to: the logs (with the same ``max_strain``) or the
     tables.  The point estimate is not refitted, so the parameters stay those given.
+    ``progress`` is called after each of the ``n`` refits.
     """
     if result.kind == "tables":
         table = pd.concat([data] if isinstance(data, pd.DataFrame) else list(data), ignore_index=True)
         problem: _Problem = _TableProblem(table, result.spec.law)
     else:
         problem = _LogProblem(data, result.spec, max_strain)
-    ci, info = _bootstrap(problem, result.values, n, seed) if n and result.success else (None, None)
+    ci, info = _bootstrap(problem, result.values, n, seed, progress) if n and result.success else (None, None)
     return replace(result, ci95_bootstrap=ci, bootstrap=info)
 
 
