@@ -246,6 +246,17 @@ def test_ties_go_to_the_effect_listed_first_and_the_runner_up_is_reported():
         assert rep.to_dict()["steps"][0]["evidence"]["runner_up"]["effect"] == order[1].name
 
 
+def test_a_catch_all_yields_to_a_physical_effect_that_passes():
+    """A model-free correction listed first, explaining as much: the physical effect is kept
+    (the catch-all would take its place, and with it what the physical model identifies)."""
+    logs = make_logs(17, curvature=0.4)
+    spline = replace(EFFECTS[0], name="spline", catch_all=True)
+    rep = loop_on(logs, candidates=[spline, EFFECTS[0]])
+    assert rep.effects == [EFFECTS[0].name]
+    # alone, the catch-all is kept
+    assert loop_on(logs, candidates=[spline]).effects == ["spline"]
+
+
 def test_a_residual_at_the_measured_noise_level_stops_the_loop():
     logs = make_logs(18, curvature=0.4)
     # noise_rms is the measurement noise, known independently of any model

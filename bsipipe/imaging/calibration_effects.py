@@ -55,7 +55,10 @@ LOCAL_DISTORTION = Effect(
     "smoothing chosen by view-wise cross-validation.",
     "A residual that is spatially coherent over the detector and repeats from view to view: neighbouring "
     "beads agree (few runs, lag-1 autocorrelation) without a purely radial or tangential pattern.",
-    lambda s: None if s.local else replace(s, local=True), ("local_dof",))
+    lambda s: None if s.local else replace(s, local=True), ("local_dof",),
+    # a spline of the residual absorbs an S-distortion (and, with it, the principal point) as
+    # readily as a warp: it takes what the physical terms leave, never their place
+    catch_all=True)
 
 #: The candidates in the order the loop tries them.
 CANDIDATES = (HIGHER_ORDER, S_DISTORTION, LOCAL_DISTORTION)

@@ -36,6 +36,11 @@ class Effect:
         boundary condition, say), given the loop states before and after the effect.  The
         dict must hold ``delta_bic`` (positive favours the effect) and may hold anything
         else worth reporting; ``None`` means there is no such data for this run.
+    catch_all : bool
+        A model-free correction (a smooth field fitted to the residual itself) that can absorb
+        what a physical effect explains, and with it parameters the physical model identifies
+        (a camera's principal point): the loop keeps it only in a round where no physical
+        effect passes, so it takes what is left after them.
 
     Examples
     --------
@@ -57,6 +62,7 @@ class Effect:
     apply: Callable[[Any], Any]
     param_names: tuple[str, ...] = ()
     evidence: Optional[Callable[[Any, Any], Optional[dict]]] = None
+    catch_all: bool = False
 
     def augment(self, spec):
         """``apply(spec)``, or ``None`` when it leaves the spec unchanged."""

@@ -32,6 +32,9 @@ Selection rule (:class:`SelectionRule`, defaults):
   :math:`\Delta\mathrm{BIC} > 10` and the fitted residual does not get very strongly worse
   (:math:`\Delta\mathrm{BIC} > -10`).  Outside evidence that is there and says no
   (:math:`\Delta\mathrm{BIC} < -10`) vetoes the candidate whatever the residual says.
+- A catch-all effect (:class:`Effect` ``catch_all``: a model-free correction fitted to the
+  residual, which can absorb a physical effect and the parameters it identifies) is kept only
+  in a round where no other candidate passes.
 - Among passing candidates the loop keeps, first, the one with the strongest outside
   evidence (direct evidence of the mechanism, from data the model was not fitted to), else
   the one with the largest :math:`\Delta\mathrm{BIC}`; the held-out error is a check, not a
@@ -400,7 +403,9 @@ def run_loop(fit: Callable[[Any], Any], spec0, candidates: Sequence[Effect], *,
                 log.info("loop: %s: %s", eff.name, ev["reason"])
         # The held-out check, costly, runs in order of preference until a candidate passes.
         kept = None
-        order = _preference(passing, rule.tie_delta_bic)
+        # physical effects first; a catch-all correction only where none of them passes
+        order = (_preference([t for t in passing if not t[1].catch_all], rule.tie_delta_bic)
+                 + _preference([t for t in passing if t[1].catch_all], rule.tie_delta_bic))
         for j, (_, eff, cand, entry) in enumerate(order):
             if kept is not None:
                 entry.update(passes=None, reason=entry["reason"] + f"; not weighed further: {kept[0].name} was kept")
