@@ -38,6 +38,10 @@ from ..provenance import ResultSet, provenance
 log = logging.getLogger("bsipipe.synth")
 
 _OWNED = ("calibration", "sequence")
+_STAGING = ".synth-staging-"
+#: truth_markers.csv's columns, written even when the scene has no markers
+TRUTH_MARKERS_COLUMNS = ["view", "frame", "time_s", "marker", "x_px", "y_px", "x_mm", "y_mm", "z_mm", "occluded",
+                         "visible"]
 _FILES = ("indentation_log.csv", "ct_markers.fcsv", "ct_markers.mrk.json", "seeds.csv", "truth_markers.csv",
           "calibration.yaml", "truth.json", "synth.json")
 
@@ -96,7 +100,8 @@ def run(config: str | os.PathLike, out: str | os.PathLike) -> dict:
     except TwinError as e:
         raise InputError(str(e), path=config, key=e.key) from None
     out.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=".synth-staging-", dir=out))
+    remove_stale_staging(out)
+    stage = Path(tempfile.mkdtemp(prefix=f"{_STAGING}{os.getpid()}-", dir=out))
     timing: dict[str, float] = {}
     counts: dict[str, int] = {}
     try:
@@ -149,7 +154,7 @@ def run(config: str | os.PathLike, out: str | os.PathLike) -> dict:
             rs.add_text("ct_markers.mrk.json", format_mrk_json(ct["names"], ct["written_mm"], "LPS", desc,
                                                                name="ct_markers"))
             rs.add_csv("seeds.csv", pd.DataFrame(twin.seeds(), columns=["view", "marker", "x_px", "y_px"]))
-            rs.add_csv("truth_markers.csv", pd.DataFrame(twin.truth_markers_rows()))
+            rs.add_csv("truth_markers.csv", pd.DataFrame(twin.truth_markers_rows(), columns=TRUTH_MARKERS_COLUMNS))
         cal_cfg = calibrate_config(cfg)
         if cal_cfg is not None:
             import yaml
@@ -161,7 +166,7 @@ def run(config: str | os.PathLike, out: str | os.PathLike) -> dict:
         timing["total_s"] = time.perf_counter() - t_start
         written = sorted(str(p.relative_to(stage)) for p in stage.rglob("*") if p.is_file()) + sorted(rs.files)
         result = {"out": str(out), "views": list(twin.arms), "counts": counts, "timing": timing,
-                  "files": [f for f in written if not f.startswith(_OWNED)] + [f"{d}/..." for d in _OWNED
+                  "files": [f for f in written if Path(f).parts[0] not in _OWNED] + [f"{d}/..." for d in _OWNED
                                                                               if (stage / d).exists()],
                   "truth": "truth.json", "provenance": prov}
         rs.add_json("synth.json", result)
@@ -181,6 +186,42 @@ def run(config: str | os.PathLike, out: str | os.PathLike) -> dict:
         return result
     finally:
         shutil.rmtree(stage, ignore_errors=True)
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:      # someone else's process
+        return True
+    except (OverflowError, ValueError):
+        return False
+    return True
+
+
+def remove_stale_staging(out: Path, legacy_age_s: float = 3600.0) -> list[Path]:
+    """Remove the staging folders in ``out`` that no running synth owns: a run killed
+    outright (SIGKILL, power loss) cannot clean up after itself. A folder's name holds its
+    run's process id (``.synth-staging-<pid>-<random>``); one without (written by an older
+    version) is removed once untouched for ``legacy_age_s``. Returns the folders removed."""
+    removed = []
+    for d in out.glob(_STAGING + "*"):
+        if not d.is_dir():
+            continue
+        pid = d.name[len(_STAGING):].split("-", 1)[0]
+        if pid.isdigit() and "-" in d.name[len(_STAGING):]:
+            stale = int(pid) != os.getpid() and not _pid_alive(int(pid))
+        else:
+            try:
+                stale = time.time() - d.stat().st_mtime > legacy_age_s
+            except OSError:
+                continue
+        if stale:
+            shutil.rmtree(d, ignore_errors=True)
+            removed.append(d)
+            log.info("removed %s, left by a synth run that no longer runs", d)
+    return removed
 
 
 def _write(path: Path, data: bytes) -> None:

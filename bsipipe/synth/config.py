@@ -7,9 +7,10 @@ See ``configs/synth_default.yaml`` for every key with its meaning.
 
 from __future__ import annotations
 
+import re
 from typing import Literal
 
-from pydantic import Field, PositiveFloat, PositiveInt, model_validator
+from pydantic import Field, PositiveFloat, PositiveInt, field_validator, model_validator
 
 from ..config import StrictModel
 
@@ -101,6 +102,17 @@ class XrayConfig(StrictModel):
 
 Pattern = Literal["circles", "asymmetric-circles", "chessboard", "charuco"]
 
+#: OpenCV's predefined ArUco dictionaries (``cv2.aruco.DICT_*``) and how many markers each
+#: holds (checked against OpenCV in ``tests/test_synth_config.py``); listed here so the
+#: config is checked without importing OpenCV.
+ARUCO_DICTIONARIES = {
+    **{f"DICT_{b}X{b}_{n}": n for b in (4, 5, 6, 7) for n in (50, 100, 250, 1000)},
+    "DICT_ARUCO_ORIGINAL": 1024,
+    "DICT_APRILTAG_16h5": 30, "DICT_APRILTAG_16H5": 30, "DICT_APRILTAG_25h9": 35, "DICT_APRILTAG_25H9": 35,
+    "DICT_APRILTAG_36h10": 2320, "DICT_APRILTAG_36H10": 2320, "DICT_APRILTAG_36h11": 587,
+    "DICT_APRILTAG_36H11": 587, "DICT_ARUCO_MIP_36h12": 250, "DICT_ARUCO_MIP_36H12": 250,
+}
+
 
 class CalibrationConfig(StrictModel):
     views: int = Field(12, ge=0, le=200, description="views of the plate per C-arm")
@@ -123,7 +135,30 @@ class CalibrationConfig(StrictModel):
             raise ValueError("grid needs at least 2 x 2")
         if self.pattern == "charuco" and (cols < 3 or rows < 3):
             raise ValueError("a ChArUco grid needs at least 3 x 3 squares")
+        if self.pattern == "charuco":
+            # a ChArUco board carries a marker in every other square
+            need, have = cols * rows // 2, ARUCO_DICTIONARIES[self.charuco_dictionary]
+            if need > have:
+                raise ValueError(f"calibration.grid {cols} x {rows} needs {need} ChArUco markers but "
+                                 f"charuco_dictionary {self.charuco_dictionary} holds {have}; use a smaller grid "
+                                 "or a larger dictionary")
         return self
+
+    @field_validator("charuco_dictionary")
+    @classmethod
+    def _known_dictionary(cls, v: str) -> str:
+        if v not in ARUCO_DICTIONARIES:
+            raise ValueError("unknown ArUco dictionary; use one of OpenCV's: "
+                             + ", ".join(k for k in ARUCO_DICTIONARIES if not re.search(r"\d[H]\d", k)))
+        return v
+
+
+#: Bounds on the designed experiment (ramp, hold, unloading, 1 s after): the markers are
+#: placed checking every design frame, and the log has a row per sample, so an unbounded
+#: timeline (``hold_s: 1e6``, ``speed_mm_per_min: 0.0001``) would exhaust memory.
+MAX_EXPERIMENT_S = 3600.0
+MAX_DESIGN_FRAMES = 20000
+MAX_LOG_SAMPLES = 1_000_000
 
 
 class SequenceConfig(StrictModel):
@@ -153,6 +188,34 @@ class SequenceConfig(StrictModel):
     log_rate_hz: PositiveFloat = 10.0
     force_noise_n: float = Field(0.001, ge=0)
     seed_click_noise_px: float = Field(0.5, ge=0, description="seeds.csv: a user's click error")
+
+    def experiment_s(self) -> float:
+        """Length of the designed experiment (s): start, ramp to full depth, hold, unloading, 1 s."""
+        ramp_s = (self.gap_mm + self.depth_mm) / (self.speed_mm_per_min / 60.0)
+        return self.start_s + ramp_s * (2 if self.unload else 1) + self.hold_s + 1.0
+
+    @model_validator(mode="after")
+    def _timeline_bounded(self):
+        if not self.enabled:
+            return self
+        ramp_s = (self.gap_mm + self.depth_mm) / (self.speed_mm_per_min / 60.0)
+        total = self.experiment_s()
+        # name the term that makes the timeline long
+        parts = {"sequence.hold_s": self.hold_s, "sequence.start_s": self.start_s,
+                 "sequence.speed_mm_per_min (with gap_mm + depth_mm)": ramp_s}
+        culprit = max(parts, key=parts.get)
+        if total > MAX_EXPERIMENT_S:
+            raise ValueError(f"the designed experiment lasts {total:.4g} s, more than the limit of "
+                             f"{MAX_EXPERIMENT_S:g} s; mostly from {culprit}")
+        frames = max(total * self.fps, self.n_frames or 0)
+        if frames > MAX_DESIGN_FRAMES:
+            key = "sequence.n_frames" if (self.n_frames or 0) > total * self.fps else "sequence.fps"
+            raise ValueError(f"the designed experiment has {frames:.4g} frames per view, more than the limit of "
+                             f"{MAX_DESIGN_FRAMES}; lower {key}")
+        if total * self.log_rate_hz > MAX_LOG_SAMPLES:
+            raise ValueError(f"the indentation log would have {total * self.log_rate_hz:.4g} rows, more than the "
+                             f"limit of {MAX_LOG_SAMPLES}; lower sequence.log_rate_hz")
+        return self
 
 
 class EffectsConfig(StrictModel):

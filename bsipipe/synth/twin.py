@@ -597,7 +597,8 @@ def build_scene(cfg: SynthConfig, arms: dict[str, CArm], times: dict[str, np.nda
     implanted markers move 0.3-1.9 mm at full depth, none touches the indentor, all are
     inside both fields of view and apart on screen; with ``effects.occlusion`` marker M2
     passes behind the indentor in cam1 and M4 in cam2 for part of the sequence (and is
-    visible at the first and last frame), without it no marker is ever behind the rod.
+    visible at the first frame, and at the last when ``sequence.unload``), without it no
+    marker is ever behind the rod. References: :func:`_reference_layout`.
     Markers are placed one at a time, each drawn again until it fits with those before."""
     sq, fx = cfg.sequence, cfg.effects
     rng = stream(cfg.seed, "scene")
@@ -643,9 +644,7 @@ def build_scene(cfg: SynthConfig, arms: dict[str, CArm], times: dict[str, np.nda
             X = tip0 - sq.indentor_marker_height_mm * into + (1 if k == 0 else -1) * sq.indentor_marker_offset_mm * b
             return Marker(f"I{k + 1}", "indentor", sq.indentor_marker_diameter_mm, X, True)
         if kind == "reference":
-            c = sq.craniotomy_mm / 2
-            ang = psi + 2 * np.pi * k / sq.n_references
-            rad = c * math.sqrt(2) if sq.n_references == 4 else c
+            ang, rad = ref_layout[k]
             off = rad * np.array([np.cos(ang), np.sin(ang), 0.0])
             X = surface + off + rng.uniform(0.0, 1.5) * into  # in the skull rim
             return Marker(f"R{k + 1}", "reference", sq.reference_diameter_mm, X, bool(fx.moving_reference and k == 1))
@@ -664,8 +663,10 @@ def build_scene(cfg: SynthConfig, arms: dict[str, CArm], times: dict[str, np.nda
 
     kinds = ([("indentor", k) for k in range(sq.indentor_markers)] + [("reference", k) for k in range(sq.n_references)]
              + [("implanted", k) for k in range(sq.n_markers)])
+    failed: dict[str, int] = {}
     for attempt in range(40):
         psi = np.deg2rad(rng.uniform(15, 30)) + np.pi / 4
+        ref_layout = _reference_layout(cfg, arms, psi, [horiz(v) for v in VIEWS], rng)
         placed: list[Marker] = []
         tracks: dict[str, list[np.ndarray]] = {v: [] for v in VIEWS}
         for kind, k in kinds:
@@ -678,11 +679,76 @@ def build_scene(cfg: SynthConfig, arms: dict[str, CArm], times: dict[str, np.nda
                         tracks[v].append(tr[v])
                     break
             else:
+                who = "occluded" if kind == "implanted" and f"M{k + 1}" in occ_view else kind
+                failed[who] = failed.get(who, 0) + 1
                 break
         if len(placed) == len(kinds):
             return scene_with(placed)
-    raise TwinError("could not place the markers so that they stay apart, inside the field of view and "
-                    "clear of the indentor; use fewer markers or a smaller indentor", key="sequence")
+    who = max(failed, key=failed.get) if failed else "implanted"
+    keys = {"indentor": ("sequence.indentor_markers", "sequence.indentor_marker_offset_mm"),
+            "reference": ("sequence.n_references", "sequence.craniotomy_mm", "sequence.reference_diameter_mm"),
+            "occluded": ("effects.occlusion", "sequence.indentor_diameter_mm"),
+            "implanted": ("sequence.n_markers", "sequence.marker_diameter_mm", "sequence.indentor_diameter_mm")}[who]
+    what = {"indentor": "the indentor's beads", "reference": "the reference markers",
+            "occluded": "the markers that pass behind the indentor (M2, M4)",
+            "implanted": "the implanted markers"}[who]
+    raise TwinError(f"could not place {what} so that they stay apart, inside the field of view and clear of "
+                    f"the indentor (as the design needs); change {', '.join(keys)}", key=keys[0])
+
+
+def _reference_layout(cfg: SynthConfig, arms: dict[str, CArm], psi: float, beams: list[np.ndarray],
+                      rng: np.random.Generator) -> list[tuple[float, float]]:
+    """(angle about the indentor axis, distance from it in mm) of each reference marker.
+
+    Four references sit at the craniotomy's corners, turned by ``psi``; other counts on a
+    circle of half the craniotomy's side, equally spaced from ``psi`` when that keeps every
+    one out of the indentor rod's shadow in both views. Otherwise (three, five, six or eight
+    references: equal spacing always puts one near a beam axis) they are drawn on the bone
+    around the square craniotomy (corners at ``psi + 90 k``, up to 1.5 mm out), where each
+    one's offset across each beam clears the rod (radius + bead radius + 0.6 mm) and differs
+    from every other reference's by enough to keep them apart on screen (bead diameter +
+    max(8 px at 1024 px, 3 px) + 0.3 mm)."""
+    sq = cfg.sequence
+    n, c = sq.n_references, sq.craniotomy_mm / 2
+    if n == 0:
+        return []
+    rad = c * math.sqrt(2) if n == 4 else c
+    layout = [(psi + 2 * np.pi * k / n, rad) for k in range(n)]
+    clear_mm = sq.indentor_diameter_mm / 2 + sq.reference_diameter_mm / 2 + 0.6
+    phi = np.array([math.atan2(b[1], b[0]) for b in beams])
+
+    def across(ang, r):                 # (..., views) offset across each beam, mm
+        return np.asarray(r)[..., None] * np.sin(np.asarray(ang)[..., None] - phi)
+
+    if n == 4 or np.all(np.abs(across([a for a, _ in layout], rad)) >= clear_mm):
+        return layout
+    arm = arms[VIEWS[0]]
+    mm_per_px = arm.pixel_pitch_mm * arm.sod_mm / arm.sid_mm
+    sep_mm = sq.reference_diameter_mm + max(8 * arm.camera.image_size[0] / 1024.0, 3.0) * mm_per_px + 0.3
+    # candidates on the bone around the square craniotomy (corners at psi + 90 k), up to 1.5 mm out
+    g = np.arange(-c - 1.5, c + 1.5 + 1e-9, 0.25)
+    gx, gy = np.meshgrid(g, g)
+    on_rim = (np.maximum(np.abs(gx), np.abs(gy)) >= c).ravel()
+    turn = psi - np.pi / 4
+    xr = gx.ravel() * np.cos(turn) - gy.ravel() * np.sin(turn)
+    yr = gx.ravel() * np.sin(turn) + gy.ravel() * np.cos(turn)
+    cand_ang, cand_rad = np.arctan2(yr, xr)[on_rim], np.hypot(xr, yr)[on_rim]
+    off = across(cand_ang, cand_rad)                  # (candidates, views)
+    ok = np.all(np.abs(off) >= clear_mm, axis=1)
+    cand_ang, cand_rad, off = cand_ang[ok], cand_rad[ok], off[ok]
+    for _ in range(200):
+        chosen: list[int] = []
+        free = np.ones(len(off), bool)
+        for _k in range(n):
+            idx = np.flatnonzero(free)
+            if len(idx) == 0:
+                break
+            j = int(rng.choice(idx))
+            chosen.append(j)
+            free &= np.all(np.abs(off - off[j]) >= sep_mm, axis=1)
+        if len(chosen) == n:
+            return [(float(cand_ang[j]), float(cand_rad[j])) for j in chosen]
+    return layout                       # cannot be met: placement then fails and says so
 
 
 def _marker_fits(scene: IndentationScene, m: Marker, arms, times, tips, occ_view, placed, tracks):
@@ -714,7 +780,9 @@ def _marker_fits(scene: IndentationScene, m: Marker, arms, times, tips, occ_view
                 return None
         clear, hidden = rod_cover(scene, arm, P, tips[v], r)
         if occ_view.get(m.name) == v:
-            if not (clear[0] and clear[-1] and hidden.sum() >= 3):
+            # clear at the start, hidden for a while, and clear again once the indentor is
+            # withdrawn (without unloading it stays down, so the marker stays hidden)
+            if not (clear[0] and (clear[-1] or not scene.unload) and hidden.sum() >= 3):
                 return None
         elif not np.all(clear):
             return None
