@@ -562,12 +562,22 @@ def run_stages(stages: list[Stage], out: Path, *, force: bool = False, only: Ite
     return [outcomes[s.name] for s in order if s.name in outcomes]
 
 
+def _quiet_interrupt(signum, frame) -> None:  # pragma: no cover - runs in a worker on Ctrl-C
+    """A worker's SIGINT (Ctrl-C reaches the whole process group): end at once, as a kill
+    would (the stage is redone by the next run), without a traceback of its own; the study
+    process reports the interruption."""
+    os._exit(128 + int(signum))
+
+
 def _die_with_parent() -> None:
     """Worker initializer: end with the study process (Linux), so that a study killed with
-    SIGKILL leaves no worker finishing a stage behind the next run's back."""
+    SIGKILL leaves no worker finishing a stage behind the next run's back; on Ctrl-C end
+    quietly (:func:`_quiet_interrupt`)."""
+    import signal
+
+    signal.signal(signal.SIGINT, _quiet_interrupt)
     if sys.platform.startswith("linux"):
         import ctypes
-        import signal
 
         try:
             ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL))   # PR_SET_PDEATHSIG
