@@ -6,6 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from bsipipe.io import csvtable
 from bsipipe.io.csvtable import write_csv
 
 AWKWARD = ["", "plain", "a,b", 'say "hi"', "two\nlines", "cr\rx", " lead", "tab\tx", "é ü", "NaN", "-0"]
@@ -27,7 +28,9 @@ def _frame(rng: np.random.Generator, n: int) -> pd.DataFrame:
 @pytest.mark.parametrize("seed", range(8))
 @pytest.mark.parametrize("ff,na", [("%.6f", ""), ("%.12g", ""), ("%.9g", "NA"), ("%.3e", "")])
 @pytest.mark.parametrize("end", ["\n", "\r\n"])
-def test_same_bytes_as_pandas(seed, ff, na, end):
+@pytest.mark.parametrize("chunk", [7, csvtable.CHUNK_ROWS])
+def test_same_bytes_as_pandas(seed, ff, na, end, chunk, monkeypatch):
+    monkeypatch.setattr(csvtable, "CHUNK_ROWS", chunk)     # blocks of 7 rows: every boundary case
     rng = np.random.default_rng(seed)
     df = _frame(rng, int(rng.integers(0, 60)))
     kw = dict(index=False, lineterminator=end, float_format=ff, na_rep=na)

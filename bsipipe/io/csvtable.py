@@ -35,6 +35,10 @@ def _quoted(s: str, end: str = "\n") -> str:
     return s
 
 
+def _is_na(v) -> bool:
+    return v is None or (isinstance(v, float) and v != v) or v is pd.NA
+
+
 def _column(a: np.ndarray, float_format: str, na_rep: str, end: str) -> list[str] | None:
     """The column's fields, or None where pandas must format it."""
     kind = a.dtype.kind
@@ -52,7 +56,7 @@ def _column(a: np.ndarray, float_format: str, na_rep: str, end: str) -> list[str
         for v in a.tolist():
             if isinstance(v, str):
                 out.append(_quoted(v, end))
-            elif v is None or (isinstance(v, float) and v != v) or v is pd.NA:
+            elif _is_na(v):
                 out.append(na_rep)
             else:                       # numbers or objects inside an object column: pandas' rules
                 return None
@@ -60,37 +64,48 @@ def _column(a: np.ndarray, float_format: str, na_rep: str, end: str) -> list[str
     return None
 
 
+def _own_kind(a: np.ndarray) -> bool:
+    """Whether :func:`_column` formats this column (every part of it)."""
+    kind = a.dtype.kind
+    if kind in "fiub":
+        return True
+    return kind in "OUT" and all(isinstance(v, str) or _is_na(v) for v in a.tolist())
+
+
+#: Rows formatted at a time: the formatted fields of a block are Python strings (about 60 bytes
+#: each), so a whole long table at once would hold tens of MB of them.
+CHUNK_ROWS = 8192
+
+
 def write_csv(df: pd.DataFrame, f=None, **kw: Any) -> str | None:
     """``df.to_csv(f, **kw)`` with the same bytes: text if ``f`` is None, else written to the
-    file object ``f`` (text or binary; binary is UTF-8)."""
+    file object ``f`` (text or binary; binary is UTF-8), :data:`CHUNK_ROWS` rows at a time."""
     own = set(kw) <= set(_OWN) and kw.get("index", False) is False and kw.get("encoding", "utf-8") == "utf-8" \
         and isinstance(kw.get("float_format"), str) and isinstance(df.columns, pd.Index) \
         and not isinstance(df.columns, pd.MultiIndex)
-    text = None
-    if own:
-        ff, na = kw["float_format"], kw.get("na_rep", "") or ""
-        end = kw.get("lineterminator") or "\n"
-        cols = []
-        for c in df.columns:
-            s = _column(df[c].to_numpy(), ff, na, end)
-            if s is None:
-                break
-            cols.append(s)
-        else:
-            head = ",".join(_quoted(str(c), end) for c in df.columns)
-            if len(df.columns) == 1:    # the csv module quotes a lone empty field
-                cols = [['""' if v == "" else v for v in cols[0]]]
-                head = head or '""'
-            buf = io.StringIO()
-            buf.write(head + end)
-            buf.writelines(",".join(r) + end for r in zip(*cols))
-            text = buf.getvalue()
-    if text is None:
+    arrays = [df[c].to_numpy() for c in df.columns] if own else []
+    if not own or not all(_own_kind(a) for a in arrays):
         return df.to_csv(f, **kw)
-    if f is None:
-        return text
-    if isinstance(f, io.TextIOBase):
-        f.write(text)
-    else:
-        f.write(text.encode("utf-8"))
-    return None
+    ff, na = kw["float_format"], kw.get("na_rep", "") or ""
+    end = kw.get("lineterminator") or "\n"
+    head = ",".join(_quoted(str(c), end) for c in df.columns)
+    lone = len(df.columns) == 1         # the csv module quotes a lone empty field
+    if lone:
+        head = head or '""'
+    buf = io.StringIO() if f is None else None
+
+    def put(text: str) -> None:
+        if buf is not None:
+            buf.write(text)
+        elif isinstance(f, io.TextIOBase):
+            f.write(text)
+        else:
+            f.write(text.encode("utf-8"))
+
+    put(head + end)
+    for i in range(0, len(df), CHUNK_ROWS):
+        cols = [_column(a[i:i + CHUNK_ROWS], ff, na, end) for a in arrays]
+        if lone:
+            cols = [['""' if v == "" else v for v in cols[0]]]
+        put("".join([",".join(r) + end for r in zip(*cols)]))
+    return buf.getvalue() if buf is not None else None
