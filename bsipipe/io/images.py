@@ -89,6 +89,11 @@ def list_image_files(source: str | os.PathLike) -> list[Path]:
     hidden files are skipped.  A glob with no match, or a folder without images, is an
     InputError.
     """
+    return _source_files(source)[0]
+
+
+def _by_name(source: str | os.PathLike) -> list[Path]:
+    """The image files of a folder or glob (a single file: itself), sorted by name."""
     s = str(source)
     p = Path(s)
     if p.is_dir():
@@ -104,19 +109,18 @@ def list_image_files(source: str | os.PathLike) -> list[Path]:
         files = [p]
     else:
         raise InputError("no such file or folder", path=s)
-    files = sorted(files, key=lambda q: natural_key(q.name))
-    series = _dicom_series(files)
-    return list(series.files) if series is not None else files
+    return sorted(files, key=lambda q: natural_key(q.name))
 
 
 def _source_files(source: str | os.PathLike) -> tuple[list[Path], _Series | None]:
     """The files of a source in order (:func:`list_image_files`) and, for a DICOM series, its
-    :class:`_Series` (the files' own times)."""
+    :class:`_Series` (the files' own times); the series' headers are read once."""
     p = Path(str(source))
     if p.is_file():
         return [p], None
-    files = list_image_files(source)
-    return files, _dicom_series(files)
+    files = _by_name(source)
+    series = _dicom_series(files)
+    return (list(series.files) if series is not None else files), series
 
 
 # --- DICOM series --------------------------------------------------------------------------
@@ -279,14 +283,6 @@ def _finish(a: np.ndarray, dtype, rgb_order: bool, channel, path, frame=None) ->
 
 # --- single files --------------------------------------------------------------------------
 
-def _head_and_tail(path: Path, n_head: int, n_tail: int) -> tuple[bytes, bytes]:
-    """The first ``n_head`` and the last ``n_tail`` bytes of a file."""
-    with open(path, "rb") as f:
-        head = f.read(n_head)
-        f.seek(max(0, f.seek(0, os.SEEK_END) - n_tail))
-        return head, f.read()
-
-
 #: Marker codes that may follow a scan's entropy-coded data (JPEG, ITU-T T.81 B.1.1.3, B.2.4):
 #: tables, the next scan, DNL, restart interval, application data, comments, end of image.
 _JPEG_AFTER_SCAN = frozenset([0xC4, 0xCC, 0xD9, 0xDA, 0xDB, 0xDC, 0xDD, 0xFE, *range(0xE0, 0xF0)])
@@ -362,11 +358,11 @@ def _check_jpeg(data: np.ndarray, path: Path) -> None:
     raise InputError("JPEG file is truncated (no end-of-image marker)", path=path)
 
 
-def _check_png_complete(path: Path) -> None:
-    """libpng prints its own error line for a truncated PNG; a complete one ends with IEND.
-    (Content without the PNG signature is left to OpenCV, which decodes by content.)"""
-    head, tail = _head_and_tail(path, 8, 12)
-    if head == b"\x89PNG\r\n\x1a\n" and b"IEND" not in tail:
+def _check_png_complete(data: np.ndarray, path: Path) -> None:
+    """libpng prints its own error line for a truncated PNG; a complete one ends with IEND
+    (``data``: the file's bytes).  (Content without the PNG signature is left to OpenCV,
+    which decodes by content.)"""
+    if data[:8].tobytes() == b"\x89PNG\r\n\x1a\n" and b"IEND" not in data[-12:].tobytes():
         raise InputError("PNG file is truncated (no IEND chunk at the end)", path=path)
 
 
@@ -374,12 +370,12 @@ def _read_cv2(path: Path, hashes: dict | None = None) -> np.ndarray:
     """Decode an image file with OpenCV; with ``hashes``, the sha256 of the bytes decoded is
     stored under ``str(path)`` (the provenance hash without reading the file twice)."""
     import cv2
-    if path.suffix.lower() == ".png":
-        _check_png_complete(path)
     data = np.fromfile(str(path), dtype=np.uint8)
     if data.size == 0:
         raise InputError("file is empty", path=path)
-    if path.suffix.lower() in (".jpg", ".jpeg"):
+    if path.suffix.lower() == ".png":
+        _check_png_complete(data, path)
+    elif path.suffix.lower() in (".jpg", ".jpeg"):
         _check_jpeg(data, path)
     if hashes is not None:
         import hashlib
