@@ -185,9 +185,13 @@ class ResultSet:
         write_csv(df, f, encoding="utf-8", **kw)
         self.files[name] = f
 
-    def add_figure(self, name: str, fig, dpi: int = 120) -> None:
+    def add_figure(self, name: str, fig, dpi: int = 120, tight: bool = True) -> None:
+        """Render ``fig`` (then closed).  ``tight``: crop to the drawn content
+        (``bbox_inches="tight"``, which draws the figure twice); a figure laid out with fixed
+        margins that fit passes False and is drawn once."""
         buf = io.BytesIO()
-        fig.savefig(buf, format=Path(name).suffix.lstrip(".") or "png", dpi=dpi, bbox_inches="tight")
+        fig.savefig(buf, format=Path(name).suffix.lstrip(".") or "png", dpi=dpi,
+                    bbox_inches="tight" if tight else None)
         import matplotlib.pyplot as plt
         plt.close(fig)
         self.add_bytes(name, buf.getvalue())

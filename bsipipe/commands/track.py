@@ -652,10 +652,11 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         result["loop_note"] = "no calibration: 2-D tracking only, nothing to triangulate or close the loop on"
     if cfg.figures:
         from ..report.track_figure import overlay_figure, trajectories_figure
-        rs.add_figure("track.png", trajectories_figure(table, points3d, title="bsipipe track"))
+        # both figures are laid out with fixed margins: drawn once, not twice for a tight crop
+        rs.add_figure("track.png", trajectories_figure(table, points3d, title="bsipipe track"), tight=False)
         rs.add_figure("overlay.png", overlay_figure(first_images, table, {v: int(table.loc[table["view"] == v, "frame"].min())
                                                                            for v in first_images},
-                                                    seed_df, d))
+                                                    seed_df, d), tight=False)
     inputs = [p for p in cfg.views.values()] + [p for p in (cfg.calibration, cfg.seeds) if p]
     result["provenance"] = provenance(cfg, inputs, command="track", known_hashes=frame_hashes)
     rs.add_json("track.json", result)
