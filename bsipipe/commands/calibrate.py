@@ -26,6 +26,7 @@ the target in the first shared stereo frame, else in the camera's first view) an
 
 from __future__ import annotations
 
+import copy
 import logging
 import os
 from pathlib import Path
@@ -56,6 +57,10 @@ class CalibrateConfig(StrictModel):
     marker_mm: PositiveFloat | None = Field(None, description="ChArUco: marker side (default 0.75 x square)")
     dictionary: str = Field("DICT_4X4_50", description="ChArUco: ArUco dictionary name")
     fix_aspect_ratio: bool = False
+    principal_point: Literal["auto", "fitted", "field-centre"] = Field(
+        "auto", description="'fitted': cx, cy fitted; 'field-centre': fixed at the image intensifier's circular field "
+                            "centre; 'auto': fitted, unless the views do not pin them down (weak-intrinsics) and a "
+                            "circular field is found, then at its centre")
     subpix_window_px: int | Literal["auto"] = Field(11, description="chessboard: cornerSubPix half window in px "
                                                    "(2-30; default 11 as OpenCV's sample and Bouguet; 'auto': up to 11, "
                                                    "shrunk below half the corner spacing)")
@@ -258,6 +263,73 @@ def _grid_mismatch_error(name: str, cfg: CalibrateConfig, mismatches: dict, path
                       f"view(s) show a part of a larger board{hint}", path=path)
 
 
+def _principal_point(name: str, free, hf, image_size, centre, cfg: CalibrateConfig, path: str, warnings: list):
+    """The principal point's source (config ``principal_point``); returns the calibration kept,
+    its held-out error, the ``principal_point`` section and the weak parameters of the fit
+    made with cx, cy free (:func:`bsipipe.imaging.calibrate.weak_intrinsics`).
+
+    A narrow field (a C-arm: f about 3,300 px for 1,024) is nearly affine: a shift of the
+    principal point trades with the views' tilts and the tangential terms, so a distortion
+    the model lacks (an intensifier's local warp of a pixel) moves it by up to hundreds of
+    pixels, the focal length with it, and the triangulated shape by millimetres, while the
+    reprojection stays as good.  When the views leave cx or cy that loose (their
+    leave-one-view-out spread over 3x the fit's own std), 'auto' fixes them at the circular
+    field's centre, where an aligned C-arm's central ray meets the intensifier."""
+    from dataclasses import replace as dc_replace
+
+    from ..imaging.calibrate import calibrate_camera, heldout_error, jackknife_std, weak_intrinsics
+    from ..quality import warning
+
+    weak = weak_intrinsics(free) if cfg.principal_point != "field-centre" else {}
+    K = free.camera.camera_matrix
+    info: dict = {"source": "fitted", "fitted_px": [float(K[0, 2]), float(K[1, 2])],
+                  "field_centre_px": None if centre is None else [float(c) for c in centre],
+                  "rule": "'auto': fitted, unless cx or cy is weakly identified (leave-one-view-out spread over 3x "
+                          "the fit's std and over 1 px) and a circular field is found: then fixed at its centre"}
+    anchor = cfg.principal_point == "field-centre" or (cfg.principal_point == "auto" and bool({"cx", "cy"} & set(weak)))
+    if anchor and centre is None:
+        if cfg.principal_point == "field-centre":
+            raise InputError(f"camera {name}: principal_point 'field-centre' needs an image intensifier's circular "
+                             "field, and none was found in the first image", path=path, key="principal_point")
+        anchor = False
+    kept, hk = free, hf
+    if anchor:
+        init = copy.copy(free.camera)
+        init.camera_matrix = K.copy()
+        init.camera_matrix[0, 2], init.camera_matrix[1, 2] = centre
+        spec = dc_replace(free.camera.spec, fix_principal_point=True)
+        kept = calibrate_camera(free.views, image_size, spec, init=init, twist_centre_px=free.camera.twist_centre_px)
+        kept.flagged = dict(free.flagged)
+        folds: list = []
+        hk = heldout_error(kept, folds=folds)
+        kept.heldout_rms_px, kept.heldout_per_view_rms_px = hk
+        kept.std_jackknife = jackknife_std(folds)
+        info.update(source="field-centre", rms_px={"fitted": free.rms_px, "field_centre": kept.rms_px},
+                    heldout_rms_px={"fitted": hf[0], "field_centre": hk[0]},
+                    focal_px={"fitted": [float(K[0, 0]), float(K[1, 1])],
+                              "field_centre": [float(kept.camera.camera_matrix[0, 0]),
+                                               float(kept.camera.camera_matrix[1, 1])]})
+        log.info("calibrate: %s: principal point fixed at the field centre (%.1f, %.1f) px (fitted: (%.1f, %.1f)); "
+                 "held-out RMS %.4f -> %.4f px", name, centre[0], centre[1], K[0, 2], K[1, 2], hf[0], hk[0])
+    if weak:
+        f = float(K[0, 0])
+        what = ", ".join(f"{k} {w['value_px']:.1f} px moves by +/-{w['std_jackknife_px']:.1f} px when one view is left "
+                         f"out (the fit's own std says +/-{w['std_px']:.2f})" for k, w in weak.items())
+        then = (f"cx, cy are fixed at the intensifier's field centre ({centre[0]:.1f}, {centre[1]:.1f}) px instead "
+                f"(principal_point 'auto'; held-out RMS {hf[0]:.4f} -> {hk[0]:.4f} px; set principal_point: fitted to "
+                "keep the fitted values)" if anchor else
+                "no circular field was found to anchor the principal point: treat the 3-D shape with care, add views "
+                "tilted further from the beam, or calibrate with a 3-D target")
+        warnings.append(warning(
+            "weak-intrinsics", f"calibrate: {name}: {what}: the views do not pin "
+            f"{'it' if len(weak) == 1 else 'them'} down.  With a narrow field (f = {f:.0f} px, "
+            f"{np.degrees(np.arctan(0.5 * max(image_size) / f)):.1f} deg half-angle) a shift of the principal point "
+            "trades with the views' tilts and the tangential terms p1, p2, so a distortion the model lacks moves it "
+            f"far, the focal length with it, and the triangulated shape; the reprojection does not show it.  {then}",
+            logger=log, view=name, parameters=weak, principal_point=info["source"]))
+    return kept, hk, info, weak
+
+
 def _failures(rejected: dict[str, str], max_reasons: int = 3) -> str:
     """The reasons views failed, each once with the views it applies to (the same wrong
     ``--grid`` fails every view alike)."""
@@ -278,7 +350,7 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
     """The whole command; returns the calibration.json content (already written to ``out``)."""
     import cv2
 
-    from ..imaging.calibrate import (LARGE_RMS_PX, ModelSpec, calibrate_with_rejection, heldout_error,
+    from ..imaging.calibrate import (LARGE_RMS_PX, ModelSpec, calibrate_with_rejection, heldout_error, jackknife_std,
                                      stereo_calibrate)
     from ..imaging.calibration_effects import close_loop
     from ..imaging.gridfind import parse_grid, target_points
@@ -336,15 +408,21 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
             report, final, lp = close_loop(base.views, image_size, base)
             h0 = lp.heldout_detail(spec0)
             hf = lp.heldout_detail(final.camera.spec)
+            folds = lp.folds(final.camera.spec)
             loop_dict = report.to_dict()
             loop_dict["baseline"]["heldout_rms_px"] = h0[0]
             loop_dict["final"]["heldout_rms_px"] = hf[0]
             loops[name] = loop_dict
         else:
             final = base
-            hf = heldout_error(final)
+            folds = []
+            hf = heldout_error(final, folds=folds)
             h0 = hf
         final.heldout_rms_px, final.heldout_per_view_rms_px = hf
+        final.std_jackknife = jackknife_std(folds)
+        centre = None if size[2] in (None, "none") else tuple(size[2])
+        final, hf, pp_info, weak = _principal_point(name, final, hf, image_size, centre, cfg, sources[0][1],
+                                                    warnings)
         final.rejected = rejected
         cals[name] = final
         d = final.to_dict()
@@ -362,6 +440,7 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
                 "a calibration target is located to a few tenths of a pixel, so the views do not fit one camera "
                 "(a wrong --grid or --pattern, views from another camera, mis-ordered points)", logger=log,
                 view=name, rms_px=final.rms_px, limit_px=LARGE_RMS_PX))
+        d["principal_point"] = pp_info
         pts = np.concatenate([v.image_points for v in final.views])
         d["coverage"], warn = _coverage(name, sources, pts)
         if warn:

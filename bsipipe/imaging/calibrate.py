@@ -82,6 +82,7 @@ class ModelSpec:
     s_distortion: bool = False   # twist theta(rho) = t1 rho + t2 rho^2 about the principal point
     local: bool = False          # smooth residual field (thin-plate spline)
     fix_aspect_ratio: bool = False
+    fix_principal_point: bool = False   # cx, cy kept where the starting camera has them
 
     @property
     def n_coeffs(self) -> int:
@@ -98,6 +99,8 @@ class ModelSpec:
                 f |= cv2.CALIB_FIX_K4 | cv2.CALIB_FIX_K5 | cv2.CALIB_FIX_K6
         if self.fix_aspect_ratio:
             f |= cv2.CALIB_FIX_ASPECT_RATIO
+        if self.fix_principal_point:
+            f |= cv2.CALIB_FIX_PRINCIPAL_POINT
         return f
 
     def coeff_names(self) -> list[str]:
@@ -109,6 +112,8 @@ class ModelSpec:
             s += "(k4-k6 fixed at 0)"
         if self.fix_aspect_ratio:
             s += "+fixed-aspect"
+        if self.fix_principal_point:
+            s += "+fixed-principal-point"
         if self.s_distortion:
             s += "+s-distortion"
         if self.local:
@@ -133,7 +138,13 @@ class LocalField:
     r"""Smooth displacement field :math:`\mathbf f(\mathbf p)` in pixels: a thin-plate spline
     (``scipy.interpolate.RBFInterpolator``, linear polynomial part) through residuals pooled
     in square cells of ``cell_px``, each cell weighted by its count (smoothing
-    ``smoothing / count``)."""
+    ``smoothing / count``), less its own affine part (``affine``, fitted over the cells by
+    :func:`fit_local_field`).
+
+    The field owns no affine part: a shift, scale or shear of the image is the pinhole's
+    (cx, cy, fx, fy and the views' poses).  A spline that kept one would share those with the
+    pinhole along a direction the reprojection cannot see (a narrow C-arm field is nearly
+    affine), and the focal length and principal point would drift along it."""
 
     centres_px: np.ndarray   # (m, 2) cell mean positions
     values_px: np.ndarray    # (m, 2) cell mean residuals
@@ -141,6 +152,7 @@ class LocalField:
     smoothing: float
     cell_px: float
     dof: float = 0.0         # effective degrees of freedom (trace of the smoother, both components)
+    affine: np.ndarray | None = None   # (3, 2): subtracted [x/scale, y/scale, 1] @ affine
     _rbf: object = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
@@ -155,14 +167,37 @@ class LocalField:
 
     def __call__(self, xy: np.ndarray) -> np.ndarray:
         xy = np.asarray(xy, dtype=float).reshape(-1, 2)
-        return self._rbf(xy / self.scale_px) if len(xy) else np.zeros((0, 2))
+        if not len(xy):
+            return np.zeros((0, 2))
+        u = xy / self.scale_px
+        f = self._rbf(u)
+        if self.affine is not None:
+            f -= u @ self.affine[:2] + self.affine[2]
+        return f
+
+    def without_affine(self) -> "LocalField":
+        """This field less its affine part, least squares over the cells weighted by their counts."""
+        u = self.centres_px / self.scale_px
+        w = np.sqrt(np.maximum(self.counts, 1.0))[:, None]
+        A = np.column_stack([u, np.ones(len(u))])
+        aff, *_ = np.linalg.lstsq(A * w, self._rbf(u) * w, rcond=None)
+        return LocalField(self.centres_px, self.values_px, self.counts, self.smoothing, self.cell_px, self.dof, aff)
 
     def to_dict(self) -> dict:
         return {"kind": "thin-plate-spline", "cell_px": self.cell_px, "smoothing": self.smoothing,
                 "dof": self.dof, "centres_px": self.centres_px.tolist(), "values_px": self.values_px.tolist(),
                 "counts": self.counts.tolist(),
-                "formula": "p = p_tw + f(p_tw); f = thin-plate spline through the cell means, positions "
-                           "divided by 24 * cell_px (scipy RBFInterpolator, degree 1, smoothing / count per cell)"}
+                "affine_removed": None if self.affine is None else self.affine.tolist(),
+                "formula": "p = p_tw + f(p_tw); f(p) = s(p / L) - [p / L, 1] affine_removed, L = 24 * cell_px; s = "
+                           "thin-plate spline through the cell means (scipy RBFInterpolator, degree 1, smoothing / "
+                           "count per cell)"}
+
+    @classmethod
+    def from_dict(cls, ld: dict) -> "LocalField":
+        aff = ld.get("affine_removed")
+        return cls(np.asarray(ld["centres_px"], float).reshape(-1, 2), np.asarray(ld["values_px"], float).reshape(-1, 2),
+                   np.asarray(ld["counts"], float), float(ld["smoothing"]), float(ld["cell_px"]),
+                   float(ld.get("dof", 0.0)), None if aff is None else np.asarray(aff, float).reshape(3, 2))
 
 
 def _bin_residuals(pos: np.ndarray, res: np.ndarray, cell_px: float):
@@ -203,7 +238,7 @@ def fit_local_field(pos: np.ndarray, res: np.ndarray, groups: np.ndarray, image_
             if sse < best_err:
                 best, best_err = sm, sse
     c, v, n = _bin_residuals(pos, res, cell)
-    f = LocalField(c, v, n, best, cell)
+    f = LocalField(c, v, n, best, cell).without_affine()
     # effective dof: trace of the cell smoother (the interpolant is linear in the data)
     from scipy.interpolate import RBFInterpolator
     m = len(c)
@@ -322,17 +357,15 @@ class CameraModel:
         desc = str(d.get("dist_model", ""))
         spec = ModelSpec(rational=n >= 8 and "k4-k6 fixed" not in desc, thin_prism="s1" in names,
                          s_distortion=d.get("s_distortion") is not None,
-                         local=d.get("local_distortion") is not None, fix_aspect_ratio="fixed-aspect" in desc)
+                         local=d.get("local_distortion") is not None, fix_aspect_ratio="fixed-aspect" in desc,
+                         fix_principal_point="fixed-principal-point" in desc)
         twist = centre = local = None
         if d.get("s_distortion"):
             sd = d["s_distortion"]
             twist = np.array([sd["t1_rad"], sd["t2_rad"]], float)
             centre = np.asarray(sd["centre_px"], float) if sd.get("centre_px") is not None else None
         if d.get("local_distortion"):
-            ld = d["local_distortion"]
-            local = LocalField(np.asarray(ld["centres_px"], float).reshape(-1, 2),
-                               np.asarray(ld["values_px"], float).reshape(-1, 2), np.asarray(ld["counts"], float),
-                               float(ld["smoothing"]), float(ld["cell_px"]), float(ld.get("dof", 0.0)))
+            local = LocalField.from_dict(d["local_distortion"])
         return cls(tuple(int(v) for v in d["image_size"]), np.asarray(d["camera_matrix"], float).reshape(3, 3),
                    np.asarray(d["dist_coeffs"], float).ravel(), spec, twist, local, centre)
 
@@ -370,6 +403,7 @@ class Calibration:
     flagged: dict[str, str] = field(default_factory=dict)
     heldout_rms_px: float | None = None
     heldout_per_view_rms_px: dict[str, float] = field(default_factory=dict)
+    std_jackknife: dict[str, float] = field(default_factory=dict)   # :func:`jackknife_std`, params' names
     iterations: int = 1
     success: bool = True
 
@@ -393,6 +427,7 @@ class Calibration:
             "heldout_rms_px": self.heldout_rms_px,
             "heldout_per_image_rms_px": dict(self.heldout_per_view_rms_px),
             "std": dict(self.std),
+            "std_jackknife": {_STD_NAME.get(k, k): v for k, v in self.std_jackknife.items()},
             "n_views": len(self.views),
             "n_points": int(sum(len(v.ids) for v in self.views)),
             "rejected_views": dict(self.rejected),
@@ -401,6 +436,28 @@ class Calibration:
                       for v, r, t in zip(self.views, self.rvecs, self.tvecs)},
         })
         return d
+
+
+#: :attr:`Calibration.params`' names as ``std`` names them.
+_STD_NAME = {"fx_px": "fx", "fy_px": "fy", "cx_px": "cx", "cy_px": "cy"}
+
+
+def weak_intrinsics(cal: Calibration, ratio: float = 3.0, floor_px: float = 1.0) -> dict[str, dict]:
+    """The pinhole parameters (fx, fy, cx, cy) whose leave-one-view-out spread
+    (:attr:`Calibration.std_jackknife`) is over ``ratio`` times the fit's own std and over
+    ``floor_px``: the views do not pin them down as closely as the fit's std says (with
+    independent errors and a right model the two agree).  Name -> value, std, jackknife
+    std (px)."""
+    p = cal.params
+    out = {}
+    for k, short in _STD_NAME.items():
+        jk = cal.std_jackknife.get(k)
+        sd = cal.std.get(short)
+        if jk is None or sd is None or not np.isfinite(jk):
+            continue
+        if jk > ratio * sd and jk > floor_px:
+            out[short] = {"value_px": p[k], "std_px": sd, "std_jackknife_px": jk}
+    return out
 
 
 def _rms(e: np.ndarray) -> float:
@@ -490,7 +547,7 @@ def calibrate_camera(views: Sequence[ViewData], image_size: tuple[int, int], spe
            if n in ("fx", "fy", "cx", "cy") or n in spec.coeff_names()}
     if spec.fix_aspect_ratio and std.get("fx", 0.0) == 0.0:
         std["fx"] = std["fy"] * K[0, 0] / K[1, 1]  # OpenCV fits fy and keeps fx = aspect * fy
-    n_params = (3 if spec.fix_aspect_ratio else 4) + spec.n_coeffs - (3 if spec.thin_prism and not spec.rational else 0)
+    n_params = (3 if spec.fix_aspect_ratio else 4) - (2 if spec.fix_principal_point else 0) + spec.n_coeffs - (3 if spec.thin_prism and not spec.rational else 0)
     n_params += 6 * len(views)
     if spec.s_distortion:
         n_params += 2
@@ -624,8 +681,11 @@ def calibrate_with_rejection(views: Sequence[ViewData], image_size: tuple[int, i
     return cal
 
 
-def heldout_error(cal: Calibration, spec: ModelSpec | None = None) -> tuple[float, dict[str, float]]:
-    """Leave-one-view-out reprojection RMS (px) over all held-out points, and per view."""
+def heldout_error(cal: Calibration, spec: ModelSpec | None = None,
+                  folds: list | None = None) -> tuple[float, dict[str, float]]:
+    """Leave-one-view-out reprojection RMS (px) over all held-out points, and per view.
+    ``folds``: a list that receives each refit's :attr:`Calibration.params` (for
+    :func:`jackknife_std`)."""
     spec = spec or cal.camera.spec
     views = cal.views
     sse = 0.0
@@ -634,12 +694,40 @@ def heldout_error(cal: Calibration, spec: ModelSpec | None = None) -> tuple[floa
     for i, v in enumerate(views):
         train = views[:i] + views[i + 1:]
         c = calibrate_camera(train, cal.camera.image_size, spec, init=cal.camera)
+        if folds is not None:
+            folds.append(c.params)
         r, t = c.camera.solve_pose(v.object_points, v.image_points, cal.rvecs[i], cal.tvecs[i])
         e = v.image_points - c.camera.project(v.object_points, r, t)
         per[v.name] = _rms(e)
         sse += float(np.sum(e ** 2))
         n += len(e)
     return float(np.sqrt(sse / n)), per
+
+
+def jackknife_std(folds: Sequence[dict]) -> dict[str, float]:
+    r"""Leave-one-view-out (jackknife) standard deviation of each parameter the ``folds``
+    (:func:`heldout_error`'s refits, one per left-out view) share:
+    :math:`\sqrt{(n-1)/n \sum_i (\theta_i - \bar\theta)^2}`.
+
+    Unlike OpenCV's ``stdDeviationsIntrinsics`` (the residual variance times the inverse
+    normal matrix: independent errors and a right model assumed), it follows what moves a
+    parameter from view to view: a systematic residual the model lacks, a parameter that
+    trades with others (a narrow field's principal point against the views' tilts and the
+    tangential terms).  Empty with fewer than 3 folds.
+
+    >>> jackknife_std([{"cx_px": 1.0}, {"cx_px": 2.0}, {"cx_px": 3.0}])["cx_px"]
+    1.632993161855452
+    """
+    if len(folds) < 3:
+        return {}
+    names = [k for k in folds[0] if all(k in f for f in folds)]
+    n = len(folds)
+    out = {}
+    for k in names:
+        a = np.array([f[k] for f in folds], float)
+        if np.all(np.isfinite(a)):
+            out[k] = float(np.sqrt((n - 1) / n * np.sum((a - a.mean()) ** 2)))
+    return out
 
 
 def residual_components(cal: Calibration) -> tuple[list[np.ndarray], np.ndarray]:

@@ -85,6 +85,7 @@ class CalibrationLoop:
         self.base = base
         self._cals: dict[ModelSpec, Calibration] = {base.camera.spec: base}
         self._heldout: dict[ModelSpec, tuple[float, dict]] = {}
+        self._folds: dict[ModelSpec, list[dict]] = {}
 
     def calibration(self, spec: ModelSpec) -> Calibration:
         if spec not in self._cals:
@@ -102,8 +103,15 @@ class CalibrationLoop:
 
     def heldout_detail(self, spec: ModelSpec) -> tuple[float, dict]:
         if spec not in self._heldout:
-            self._heldout[spec] = heldout_error(self.calibration(spec), spec)
+            folds: list[dict] = []
+            self._heldout[spec] = heldout_error(self.calibration(spec), spec, folds=folds)
+            self._folds[spec] = folds
         return self._heldout[spec]
+
+    def folds(self, spec: ModelSpec) -> list[dict]:
+        """The leave-one-view-out refits' parameters of ``spec`` (:func:`heldout_error`)."""
+        self.heldout_detail(spec)
+        return self._folds[spec]
 
 
 def close_loop(views: Sequence[ViewData], image_size: tuple[int, int], base: Calibration,

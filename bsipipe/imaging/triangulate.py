@@ -90,7 +90,8 @@ def _calibrate_camera_model(d: Mapping):
     n = len(d["dist_coeffs"])
     desc = str(d.get("dist_model", ""))
     spec = ModelSpec(rational=n >= 8, thin_prism=n >= 12, s_distortion=d.get("s_distortion") is not None,
-                     local=d.get("local_distortion") is not None, fix_aspect_ratio="fixed-aspect" in desc)
+                     local=d.get("local_distortion") is not None, fix_aspect_ratio="fixed-aspect" in desc,
+                     fix_principal_point="fixed-principal-point" in desc)
     twist = centre = None
     if d.get("s_distortion"):
         s = d["s_distortion"]
@@ -98,10 +99,7 @@ def _calibrate_camera_model(d: Mapping):
         centre = np.asarray(s.get("centre_px"), float) if s.get("centre_px") is not None else None
     local = None
     if d.get("local_distortion"):
-        ld = d["local_distortion"]
-        local = LocalField(np.asarray(ld["centres_px"], float).reshape(-1, 2), np.asarray(ld["values_px"], float).reshape(-1, 2),
-                           np.asarray(ld["counts"], float), float(ld["smoothing"]), float(ld["cell_px"]),
-                           float(ld.get("dof", 0.0)))
+        local = LocalField.from_dict(d["local_distortion"])
     del names
     return CameraModel(tuple(int(v) for v in d["image_size"]), np.asarray(d["camera_matrix"], float).reshape(3, 3),
                        np.asarray(d["dist_coeffs"], float).ravel(), spec, twist, local, centre)
