@@ -178,6 +178,44 @@ def test_bead_diameter_is_estimated_at_any_size(radius_px):
     assert err.max() < 0.05
 
 
+def _bead_views(n: int = 4, seed: int = 0) -> list[np.ndarray]:
+    """Dark 12 px beads on a symmetric 6x5 grid, a little turned and sheared per view."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(n):
+        img = np.full((420, 480), 200.0)
+        yy, xx = np.mgrid[0:420, 0:480]
+        a = np.deg2rad(rng.uniform(-8, 8))
+        A = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]) @ np.diag(rng.uniform(0.9, 1.1, 2))
+        for r in range(5):
+            for c in range(6):
+                cx, cy = np.array([240.0, 210.0]) + A @ np.array([(c - 2.5) * 60.0, (r - 2) * 60.0])
+                img -= 150.0 * np.clip(6.5 - np.hypot(xx - cx, yy - cy), 0, 1)
+        out.append(np.clip(cv2.GaussianBlur(img, (0, 0), 1.0) + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8))
+    return out
+
+
+@pytest.mark.parametrize("args", [["--pattern", "circles", "--grid", "5x4"],
+                                  ["--pattern", "asymmetric-circles", "--grid", "6x5"]])
+def test_wrong_circle_grid_exits_2_naming_the_grid_the_views_show(tmp_path, args):
+    """A bead grid whose --grid or --pattern does not fit the plate was a processing failure
+    (exit 1, "found in 0 images"); it is bad input: exit 2 naming the grid every view shows.
+    (A --grid larger than the plate is read as a grid cut off by the field: calibrated.)"""
+    d = tmp_path / "views"
+    d.mkdir()
+    for k, img in enumerate(_bead_views()):
+        cv2.imwrite(str(d / f"v{k}.png"), img)
+    r = CliRunner().invoke(cli, ["calibrate", "--images", str(d), *args, "--spacing-mm", "10", "--no-loop",
+                                 "-o", str(tmp_path / "o")])
+    print(r.output)
+    assert r.exit_code == 2, r.output
+    assert "complete 6x5 circles grid: is it --pattern circles --grid 6x5" in r.output
+    assert not (tmp_path / "o").exists()
+    ok = CliRunner().invoke(cli, ["calibrate", "--images", str(d), "--pattern", "circles", "--grid", "6x5",
+                                  "--spacing-mm", "10", "--no-loop", "-o", str(tmp_path / "o")])
+    assert ok.exit_code == 0, ok.output
+
+
 def test_too_few_blobs_message_suggests_diameter():
     img = np.full((200, 200), 200.0, np.float32)
     img[90:110, 90:110] = 40.0  # one blob, no grid

@@ -198,7 +198,7 @@ def _detect_source(path: str, cfg: CalibrateConfig, kind: str, size: list, views
                 det = find_target(fr.image, cfg.pattern, grid, cfg.spacing_mm, **kw)
         except DetectionFailed as e:
             if isinstance(e, GridMismatch):
-                mismatches[key] = e.found
+                mismatches[key] = None if e.found is None else (e.pattern or cfg.pattern, e.found)
             rejected[key] = f"detection failed: {e}"
             log.info("calibrate: %s: %s", key, rejected[key])
             continue
@@ -252,9 +252,15 @@ def _grid_mismatch_error(name: str, cfg: CalibrateConfig, mismatches: dict, path
     others not found at all): exit 2 with the board's size most views show."""
     from collections import Counter
     sizes = Counter(f for f in mismatches.values() if f is not None)
+    if cfg.pattern != "chessboard":
+        (p, (c, r)), n = sizes.most_common(1)[0] if sizes else ((cfg.pattern, (0, 0)), 0)
+        hint = (f": {n} of {len(mismatches)} views show a complete {c}x{r} {p} grid: is it --pattern {p} --grid "
+                f"{c}x{r}? (circles per row x rows)" if n else "")
+        return InputError(f"camera {name}: --pattern {cfg.pattern} --grid {cfg.grid} does not fit the target{hint}",
+                          path=path)
     hint = ""
     if sizes:
-        (c, r), n = sizes.most_common(1)[0]
+        (_, (c, r)), n = sizes.most_common(1)[0]
         hint = (f"; the board has {c}x{r} inner corners ({n} of {len(mismatches)} views): is it --grid {c}x{r}? "
                 "(a chessboard's --grid counts inner corners, COLSxROWS)")
     else:

@@ -56,11 +56,13 @@ class DetectionFailed(Exception):
 
 class GridMismatch(DetectionFailed):
     """The view shows a board of another size than the grid asked for (``found``: its
-    ``(cols, rows)`` in the orientation of the grid asked for, None when not measured)."""
+    ``(cols, rows)`` in the orientation of the grid asked for, None when not measured;
+    ``pattern``: the layout it shows, when that is what differs or was measured)."""
 
-    def __init__(self, message: str, found: tuple[int, int] | None):
+    def __init__(self, message: str, found: tuple[int, int] | None, pattern: str | None = None):
         super().__init__(message)
         self.found = None if found is None else tuple(int(x) for x in found)
+        self.pattern = pattern
 
 
 @dataclass
@@ -805,14 +807,14 @@ def find_circles(image: np.ndarray, grid: tuple[int, int], spacing_mm: float, *,
     info = {"method": "blobs+lattice", "polarity": polarity, "diameter_px": blobs.diameter_px,
             "n_blobs": int(len(blobs.xy)), "n_on_lattice": int(ok.sum())}
     if len(xy) > n_target:
-        raise DetectionFailed(f"{len(xy)} blobs on the lattice, more than the {grid[0]}x{grid[1]} grid holds"
-                              + _grid_hint(ij, xy, pattern, grid))
+        _raise_other_grid(f"{len(xy)} blobs on the lattice, more than the {grid[0]}x{grid[1]} grid holds",
+                          ij, xy, pattern, grid)
     if len(xy) < n_target and (not allow_partial or len(xy) < n_target // 2):
-        raise DetectionFailed(f"only {len(xy)} of {n_target} grid points found")
+        _raise_other_grid(f"only {len(xy)} of {n_target} grid points found", ij, xy, pattern, grid)
     try:
         colrow, complete, ambiguous = fit_to_target(ij, pattern, grid, xy)
     except DetectionFailed as e:
-        raise DetectionFailed(str(e) + _grid_hint(ij, xy, pattern, grid)) from None
+        _raise_other_grid(str(e), ij, xy, pattern, grid)
     ids = colrow[:, 1] * grid[0] + colrow[:, 0]
     order = np.argsort(ids)
     obj = target_points(pattern, grid, spacing_mm)[ids[order]]
@@ -859,15 +861,16 @@ def lattice_grids(ij: np.ndarray, xy: np.ndarray | None = None) -> list[tuple[st
     return out
 
 
-def _grid_hint(ij: np.ndarray, xy: np.ndarray, pattern: str, grid: tuple[int, int]) -> str:
-    """``"; they form a complete 8x17 asymmetric-circles grid (--pattern ... --grid 8x17)"``
-    when the points fill a grid other than the one asked for, else ``""``."""
+def _raise_other_grid(message: str, ij: np.ndarray, xy: np.ndarray, pattern: str, grid: tuple[int, int]):
+    """Raise :class:`GridMismatch` (the view fills a complete grid of another size or layout:
+    ``"...; the 136 points form a complete 8x17 asymmetric-circles grid: is it --pattern ...
+    --grid 8x17 ...?"``), else :class:`DetectionFailed` with ``message``."""
     grids = [g for g in lattice_grids(ij, xy) if g != (pattern, tuple(grid))]
     if not grids:
-        return ""
+        raise DetectionFailed(message)
     p, (c, r) = grids[0]
-    return (f"; the {len(ij)} points form a complete {c}x{r} {p} grid: is it --pattern {p} --grid {c}x{r} "
-            "(OpenCV's convention: circles per row x rows)?")
+    raise GridMismatch(f"{message}; the {len(ij)} points form a complete {c}x{r} {p} grid: is it --pattern {p} "
+                       f"--grid {c}x{r} (OpenCV's convention: circles per row x rows)?", (c, r), p)
 
 
 def aruco_dictionaries() -> list[str]:
