@@ -487,6 +487,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     finally:
         cv2.setNumThreads(cv2_threads)
     table = pd.concat(tables, ignore_index=True)
+    del tables          # the per-view tables: a second copy of the 2-D table for the rest of the run
     if seed_df is not None:  # a seed that finds nothing in any frame is a wrong seed, not a result
         found_any = table.groupby(["view", "marker"])["found"].any()
         for v, m, x, y in seed_df[["view", "marker", "x_px", "y_px"]].itertuples(index=False):
@@ -535,6 +536,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         else:
             time_unit = "s"
         data = stereo_data(sub, vpair)
+        del sub
         if not data.markers:
             raise InputError(f"no marker is tracked in both {pair[0]} and {pair[1]} (the seeds must use the same "
                              "marker names in both views)", path=cfg.seeds)
@@ -569,7 +571,9 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
             sub["found"] = sub["found"].astype(bool) & ok
             if time_unit == "frame":
                 sub["time_s"] = sub["frame"].astype(float)
-            fit = stereo_fit(stereo_data(sub, vpair), StereoSpec(occlusion=fit.spec.occlusion),
+            sdata = stereo_data(sub, vpair)
+            del sub
+            fit = stereo_fit(sdata, StereoSpec(occlusion=fit.spec.occlusion),
                              fixed_offset_s=fit.params.get("view_time_offset_s"), max_offset_s=cfg.max_offset_s)
             raw = points3d.set_index(["frame", "marker"])[["x_mm", "y_mm", "z_mm", "ray_gap_mm"]]
             points3d = fit.points.copy()
