@@ -135,6 +135,25 @@ def test_auto_anchors_a_loose_principal_point_at_the_field_centre():
     assert w["principal_point"] == "field-centre" and "field centre" in w["message"]
 
 
+def test_auto_refuses_a_field_centre_far_from_the_principal_point():
+    """A C-arm whose central ray misses the field centre by 80 px: fixed there, the held-out
+    RMS triples (0.233 -> 0.70 px, fx 7 % off), so 'auto' keeps the fitted principal point
+    and the warning says the anchor was tried and refused."""
+    from bsipipe.commands.calibrate import ANCHOR_MAX_HELDOUT_RATIO, _principal_point
+    free = calibrate_camera(_views(True, seed=7), (SIZE, SIZE))
+    folds: list = []
+    hf = heldout_error(free, folds=folds)
+    free.std_jackknife = jackknife_std(folds)
+    warnings: list = []
+    centre = (K_TRUE[0, 2] + 64.0, K_TRUE[1, 2] - 48.0)
+    kept, hk, info, weak = _principal_point("cam1", free, hf, (SIZE, SIZE), centre, _config(), "views", warnings)
+    print(info.get("field_centre_rejected"))
+    assert kept is free and hk == hf and info["source"] == "fitted"
+    assert f"over {ANCHOR_MAX_HELDOUT_RATIO:g}x" in info["field_centre_rejected"]
+    [w] = warnings
+    assert "tried and refused" in w["message"] and w["principal_point"] == "fitted"
+
+
 @pytest.mark.parametrize("mode", ["fitted", "auto-right-model"])
 def test_principal_point_stays_fitted(mode):
     """'fitted' keeps the fitted cx, cy even when they are loose (the warning still says so);

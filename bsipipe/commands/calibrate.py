@@ -269,6 +269,12 @@ def _grid_mismatch_error(name: str, cfg: CalibrateConfig, mismatches: dict, path
                       f"view(s) show a part of a larger board{hint}", path=path)
 
 
+#: 'auto' keeps a principal point fixed at the field centre only while the held-out RMS
+#: stays within this factor of the fitted one's (on the warped twins it rose 4-20 % at the
+#: true centre; a field centre 80 px from the principal point tripled it).
+ANCHOR_MAX_HELDOUT_RATIO = 1.5
+
+
 def _principal_point(name: str, free, hf, image_size, centre, cfg: CalibrateConfig, path: str, warnings: list):
     """The principal point's source (config ``principal_point``); returns the calibration kept,
     its held-out error, the ``principal_point`` section and the weak parameters of the fit
@@ -317,15 +323,31 @@ def _principal_point(name: str, free, hf, image_size, centre, cfg: CalibrateConf
                                                float(kept.camera.camera_matrix[1, 1])]})
         log.info("calibrate: %s: principal point fixed at the field centre (%.1f, %.1f) px (fitted: (%.1f, %.1f)); "
                  "held-out RMS %.4f -> %.4f px", name, centre[0], centre[1], K[0, 2], K[1, 2], hf[0], hk[0])
+        if cfg.principal_point == "auto" and hk[0] > ANCHOR_MAX_HELDOUT_RATIO * hf[0]:
+            # the views do not fit a camera whose principal point is at the field's centre: the
+            # C-arm's central ray misses it (a shifted source or collimator); keep the fitted one
+            info.update(source="fitted", field_centre_rejected=(
+                f"held-out RMS {hf[0]:.4f} -> {hk[0]:.4f} px with cx, cy at the field centre, over "
+                f"{ANCHOR_MAX_HELDOUT_RATIO:g}x: the principal point is not there"))
+            kept, hk, anchor = free, hf, False
     if weak:
         f = float(K[0, 0])
         what = ", ".join(f"{k} {w['value_px']:.1f} px moves by +/-{w['std_jackknife_px']:.1f} px when one view is left "
                          f"out (the fit's own std says +/-{w['std_px']:.2f})" for k, w in weak.items())
-        then = (f"cx, cy are fixed at the intensifier's field centre ({centre[0]:.1f}, {centre[1]:.1f}) px instead "
-                f"(principal_point 'auto'; held-out RMS {hf[0]:.4f} -> {hk[0]:.4f} px; set principal_point: fitted to "
-                "keep the fitted values)" if anchor else
-                "no circular field was found to anchor the principal point: treat the 3-D shape with care, add views "
-                "tilted further from the beam, or calibrate with a 3-D target")
+        care = "treat the 3-D shape with care, add views tilted further from the beam, or calibrate with a 3-D target"
+        if anchor:
+            then = (f"cx, cy are fixed at the intensifier's field centre ({centre[0]:.1f}, {centre[1]:.1f}) px instead "
+                    f"(principal_point 'auto'; held-out RMS {hf[0]:.4f} -> {hk[0]:.4f} px; principal_point: fitted "
+                    "keeps the fitted values)")
+        elif info.get("field_centre_rejected"):
+            then = (f"fixing cx, cy at the intensifier's field centre was tried and refused "
+                    f"({info['field_centre_rejected']}): {care}")
+        elif cfg.principal_point == "fitted":
+            then = f"kept fitted (principal_point: fitted): {care}"
+        elif centre is None:
+            then = f"no circular field was found to anchor the principal point at: {care}"
+        else:
+            then = f"the principal point itself is pinned down: {care}"
         warnings.append(warning(
             "weak-intrinsics", f"calibrate: {name}: {what}: the views do not pin "
             f"{'it' if len(weak) == 1 else 'them'} down.  With a narrow field (f = {f:.0f} px, "
