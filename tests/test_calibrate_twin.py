@@ -165,15 +165,16 @@ def test_calibrate_on_the_twins_default_views(default_plate):
 
 
 def test_calibrate_names_the_grid_the_views_show(default_plate):
-    """A wrong ``--grid`` (the old 7x15 plate) fails with exit 1 and a message that names the
-    grid the beads do form, once for all the views it applies to."""
+    """A wrong ``--grid`` (the old 7x15 plate) is bad input: exit 2 (it was exit 1 until
+    session 5) and a message that names the grid the beads do form, once for all the views
+    it applies to."""
     root, truth, _ = default_plate
     r = CliRunner().invoke(cli, ["calibrate", "--images", str(root / "tw" / "calibration" / "cam1"),
                                  "--pattern", "asymmetric-circles", "--grid", "7x15", "--spacing-mm", "7",
                                  "--no-loop", "-o", str(root / "wrong")])
     print(r.output)
-    assert r.exit_code == 1
+    assert r.exit_code == 2
     err = [line for line in r.output.splitlines() if line.startswith("bsipipe calibrate: error:")]
     assert len(err) == 1
     assert "complete 8x17 asymmetric-circles grid" in err[0] and "--grid 8x17" in err[0]
-    assert err[0].count("8x17 asymmetric-circles") == 1 and "4 failed" in err[0]
+    assert err[0].count("8x17 asymmetric-circles") == 1 and "4 of 4 views" in err[0]

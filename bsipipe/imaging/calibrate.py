@@ -248,6 +248,7 @@ def fit_local_field(pos: np.ndarray, res: np.ndarray, groups: np.ndarray, image_
         f.dof = 2.0 * float(np.trace(S))
     else:
         f.dof = 2.0 * m
+    f.dof = max(f.dof - 6.0, 0.0)        # less the affine part (3 per component) the pinhole owns
     return f
 
 
