@@ -401,9 +401,10 @@ CASES: list[Case] = [
     _c("calib-too-few-views", "calibrate", "two usable views (at least three needed)",
        lambda b, d: (_calib_args(f := _calib_folder(b, d, 2)), f, None), expect=1, sub=True),
     # a grid larger than the board is a partly seen target (X-ray grids run past the field) and
-    # calibrates; a grid smaller than the board cannot be placed on it
+    # calibrates; a grid smaller than the board cannot be placed on it: bad input (exit 2, as a
+    # chessboard's; exit 1 until session 5), naming the grid the views show
     _c("calib-pattern-size", "calibrate", "--grid 3x9 for a 4x9 board",
-       lambda b, d: (_calib_args(f := _calib_folder(b, d), "3x9"), f, None), expect=1),
+       lambda b, d: (_calib_args(f := _calib_folder(b, d), "3x9"), f, "--grid 4x9"), expect=2),
     _c("calib-config-unknown-key", "calibrate", "config typo 'spacing'",
        lambda b, d: (["calibrate", p := _config_edit(b.configs["calibrate"], d / "c.yaml",
                                                       lambda c: c.update(spacing=3.0))], p, "key 'spacing'")),
