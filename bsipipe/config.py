@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any, Literal, TypeVar, get_args
+from typing import Any, Literal, TypeVar, get_args, get_origin
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, ValidationError, field_validator
@@ -20,9 +20,12 @@ M = TypeVar("M", bound="StrictModel")
 
 
 def _takes_bool(annotation) -> bool:
-    """Whether a field's type admits a bool (``bool``, ``Any``, or a union / container with one)."""
+    """Whether a field's type admits a bool (``bool``, ``Any``, a ``Literal`` with ``True`` or
+    ``False`` among its values, or a union / container with one)."""
     if annotation is bool or annotation is Any:
         return True
+    if get_origin(annotation) is Literal:
+        return any(isinstance(a, bool) for a in get_args(annotation))
     return any(_takes_bool(a) for a in get_args(annotation))
 
 

@@ -742,3 +742,13 @@ def test_config_numbers_are_numbers(value, ok):
     else:
         with pytest.raises(InputError, match=r"c.yaml, key 'height_mm': .*(not true/false|finite)"):
             validate(FitConfig, {"diameter_mm": 18, "height_mm": value}, "c.yaml")
+
+
+@pytest.mark.parametrize("value", [True, False, "auto"])
+def test_config_literal_with_true_false_takes_them(value):
+    """A key whose values include true and false (``fe-solve.enabled: auto | true | false``)
+    takes YAML's true/false: the numbers-are-numbers rule refused them (session 5: the
+    documented ``fe-solve: {enabled: false}`` was exit 2)."""
+    from bsipipe.config import validate
+    from bsipipe.study_config import FeSolveSection
+    assert validate(FeSolveSection, {"enabled": value}, "s.yaml").enabled == value
