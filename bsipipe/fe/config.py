@@ -137,7 +137,8 @@ class ChecksConfig(StrictModel):
     speed_mm_per_min: PositiveFloat | None = Field(12.0, description="expected indentor speed (null: no check)")
     speed_rel_tol: PositiveFloat = 0.05
     depth_mm: PositiveFloat | None = Field(4.8, description="expected depth after contact (null: no check)")
-    depth_tol_mm: PositiveFloat = 0.1
+    depth_tol_mm: PositiveFloat = Field(0.1, description="allowed depth difference, plus 2 sd of the contact "
+                                                         "travel the log's force shows (0 when log.contact_mm is given)")
     max_trajectory_difference_mm: PositiveFloat | None = Field(
         0.5, description="largest log-vs-X-ray difference of the indentor's position during contact")
     on_fail: Literal["error", "warn"] = Field("error", description="error: exit 1; warn: log and record")
