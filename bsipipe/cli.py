@@ -128,9 +128,8 @@ def fit_ogden(inputs, out, **opts) -> None:
 @click.option("--marker-mm", type=click.FloatRange(min=0, min_open=True), help="ChArUco: marker side (mm).")
 @click.option("--dictionary", help="ChArUco: ArUco dictionary (default DICT_4X4_50).")
 @click.option("--fix-aspect-ratio", is_flag=True, default=None, help="Keep fx/fy at its initial value 1.")
-@click.option("--principal-point", type=click.Choice(["auto", "fitted", "field-centre"]),
-              help="cx, cy: fitted; fixed at the intensifier's circular field centre; or 'auto' (default): fitted "
-                   "unless the views do not pin them down and a circular field is found.")
+@click.option("--principal-point", type=click.Choice(["fitted", "field-centre"]),
+              help="cx, cy fitted (default), or fixed at the image intensifier's circular field centre.")
 @click.option("--subpix-window-px", help="Chessboard: cornerSubPix half window in px, 2-30 (default 11, as "
               "OpenCV's sample), or 'auto' (shrunk below half the corner spacing: more accurate on small boards).")
 @click.option("--keep-outlier-views", "reject_outliers", flag_value=False, default=None,

@@ -57,10 +57,9 @@ class CalibrateConfig(StrictModel):
     marker_mm: PositiveFloat | None = Field(None, description="ChArUco: marker side (default 0.75 x square)")
     dictionary: str = Field("DICT_4X4_50", description="ChArUco: ArUco dictionary name")
     fix_aspect_ratio: bool = False
-    principal_point: Literal["auto", "fitted", "field-centre"] = Field(
-        "auto", description="'fitted': cx, cy fitted; 'field-centre': fixed at the image intensifier's circular field "
-                            "centre; 'auto': fitted, unless the views do not pin them down (weak-intrinsics) and a "
-                            "circular field is found, then at its centre")
+    principal_point: Literal["fitted", "field-centre"] = Field(
+        "fitted", description="'fitted': cx, cy fitted; 'field-centre': fixed at the image intensifier's circular "
+                              "field centre (physical cx, cy when the views leave them loose; a worse fit)")
     subpix_window_px: int | Literal["auto"] = Field(11, description="chessboard: cornerSubPix half window in px "
                                                    "(2-30; default 11 as OpenCV's sample and Bouguet; 'auto': up to 11, "
                                                    "shrunk below half the corner spacing)")
@@ -269,43 +268,43 @@ def _grid_mismatch_error(name: str, cfg: CalibrateConfig, mismatches: dict, path
                       f"view(s) show a part of a larger board{hint}", path=path)
 
 
-#: 'auto' keeps a principal point fixed at the field centre only while the held-out RMS
-#: stays within this factor of the fitted one's (on the warped twins it rose 4-20 % at the
-#: true centre; a field centre 80 px from the principal point tripled it).
+#: With ``principal_point: field-centre`` a held-out RMS over this factor of the fitted
+#: principal point's is warned about: the C-arm's central ray misses the field centre (on the
+#: warped twin it rose 4-12 % at the true centre; a field centre 80 px off tripled it).
 ANCHOR_MAX_HELDOUT_RATIO = 1.5
 
 
 def _principal_point(name: str, free, hf, image_size, centre, cfg: CalibrateConfig, path: str, warnings: list):
     """The principal point's source (config ``principal_point``); returns the calibration kept,
     its held-out error, the ``principal_point`` section and the weak parameters of the fit
-    made with cx, cy free (:func:`bsipipe.imaging.calibrate.weak_intrinsics`).
+    with cx, cy free (:func:`bsipipe.imaging.calibrate.weak_intrinsics`, warned about).
 
     A narrow field (a C-arm: f about 3,300 px for 1,024) is nearly affine: a shift of the
-    principal point trades with the views' tilts and the tangential terms, so a distortion
-    the model lacks (an intensifier's local warp of a pixel) moves it by up to hundreds of
-    pixels, the focal length with it, and the triangulated shape by millimetres, while the
-    reprojection stays as good.  When the views leave cx or cy that loose (their
-    leave-one-view-out spread over 3x the fit's own std), 'auto' fixes them at the circular
-    field's centre, where an aligned C-arm's central ray meets the intensifier."""
+    principal point is, to first order, a turn of the camera (with the tangential terms taking
+    the second-order rest), so a distortion the model lacks (an intensifier's local warp of a
+    pixel) moves cx by up to hundreds of pixels and fx by a few per cent while the
+    reprojection stays as good.  The two cameras turn together, so the triangulated shape is
+    not hurt: measured on the S-distortion twin (cam1 cx 235 px off), 0.0048 mm RMS over a
+    50 mm cube after a rigid fit; the camera frame is turned by atan(shift / f), 4.1 deg
+    there, which the CT registration takes up.  'fitted' (the default) keeps that;
+    'field-centre' fixes cx, cy at the intensifier's circular field centre, where an aligned
+    C-arm's central ray meets it, for parameters with their physical meaning (on the twin:
+    cx 3.6 px off, frame turned 0.15 deg, at the cost of a worse fit: held-out +4 to +12 %,
+    stereo RMS 0.073 -> 0.113 px, shape 0.0067 mm)."""
     from dataclasses import replace as dc_replace
 
     from ..imaging.calibrate import calibrate_camera, heldout_error, jackknife_std, weak_intrinsics
     from ..quality import warning
 
-    weak = weak_intrinsics(free) if cfg.principal_point != "field-centre" else {}
+    weak = weak_intrinsics(free)
     K = free.camera.camera_matrix
     info: dict = {"source": "fitted", "fitted_px": [float(K[0, 2]), float(K[1, 2])],
-                  "field_centre_px": None if centre is None else [float(c) for c in centre],
-                  "rule": "'auto': fitted, unless cx or cy is weakly identified (leave-one-view-out spread over 3x "
-                          "the fit's std and over 1 px) and a circular field is found: then fixed at its centre"}
-    anchor = cfg.principal_point == "field-centre" or (cfg.principal_point == "auto" and bool({"cx", "cy"} & set(weak)))
-    if anchor and centre is None:
-        if cfg.principal_point == "field-centre":
+                  "field_centre_px": None if centre is None else [float(c) for c in centre]}
+    kept, hk = free, hf
+    if cfg.principal_point == "field-centre":
+        if centre is None:
             raise InputError(f"camera {name}: principal_point 'field-centre' needs an image intensifier's circular "
                              "field, and none was found in the first image", path=path, key="principal_point")
-        anchor = False
-    kept, hk = free, hf
-    if anchor:
         init = copy.copy(free.camera)
         init.camera_matrix = K.copy()
         init.camera_matrix[0, 2], init.camera_matrix[1, 2] = centre
@@ -323,38 +322,35 @@ def _principal_point(name: str, free, hf, image_size, centre, cfg: CalibrateConf
                                                float(kept.camera.camera_matrix[1, 1])]})
         log.info("calibrate: %s: principal point fixed at the field centre (%.1f, %.1f) px (fitted: (%.1f, %.1f)); "
                  "held-out RMS %.4f -> %.4f px", name, centre[0], centre[1], K[0, 2], K[1, 2], hf[0], hk[0])
-        if cfg.principal_point == "auto" and hk[0] > ANCHOR_MAX_HELDOUT_RATIO * hf[0]:
-            # the views do not fit a camera whose principal point is at the field's centre: the
-            # C-arm's central ray misses it (a shifted source or collimator); keep the fitted one
-            info.update(source="fitted", field_centre_rejected=(
-                f"held-out RMS {hf[0]:.4f} -> {hk[0]:.4f} px with cx, cy at the field centre, over "
-                f"{ANCHOR_MAX_HELDOUT_RATIO:g}x: the principal point is not there"))
-            kept, hk, anchor = free, hf, False
+        if hk[0] > ANCHOR_MAX_HELDOUT_RATIO * hf[0]:
+            warnings.append(warning(
+                "principal-point-not-at-field-centre",
+                f"calibrate: {name}: with cx, cy fixed at the field centre ({centre[0]:.1f}, {centre[1]:.1f}) px the "
+                f"held-out RMS rises from {hf[0]:.4f} to {hk[0]:.4f} px, over {ANCHOR_MAX_HELDOUT_RATIO:g}x: the "
+                f"C-arm's central ray misses the field centre (fitted: ({K[0, 2]:.1f}, {K[1, 2]:.1f}) px); "
+                "principal_point: fitted fits it", logger=log, view=name,
+                heldout_rms_px={"fitted": hf[0], "field_centre": hk[0]}))
     if weak:
         f = float(K[0, 0])
         what = ", ".join(f"{k} {w['value_px']:.1f} px moves by +/-{w['std_jackknife_px']:.1f} px when one view is left "
                          f"out (the fit's own std says +/-{w['std_px']:.2f})" for k, w in weak.items())
-        care = "treat the 3-D shape with care, add views tilted further from the beam, or calibrate with a 3-D target"
-        if anchor:
-            then = (f"cx, cy are fixed at the intensifier's field centre ({centre[0]:.1f}, {centre[1]:.1f}) px instead "
-                    f"(principal_point 'auto'; held-out RMS {hf[0]:.4f} -> {hk[0]:.4f} px; principal_point: fitted "
-                    "keeps the fitted values)")
-        elif info.get("field_centre_rejected"):
-            then = (f"fixing cx, cy at the intensifier's field centre was tried and refused "
-                    f"({info['field_centre_rejected']}): {care}")
-        elif cfg.principal_point == "fitted":
-            then = f"kept fitted (principal_point: fitted): {care}"
-        elif centre is None:
-            then = f"no circular field was found to anchor the principal point at: {care}"
-        else:
-            then = f"the principal point itself is pinned down: {care}"
+        pp = {"cx", "cy"} & set(weak)
+        shift = float(np.hypot(*(w["std_jackknife_px"] for k, w in weak.items() if k in pp))) if pp else 0.0
+        then = (f"the parameters are uncertain (std_jackknife), not the 3-D: a shift of the principal point is a turn "
+                f"of the camera (here about {np.degrees(np.arctan(shift / f)):.2f} deg per jackknife sd), both cameras "
+                "turn together and the triangulated shape is kept; the camera frame turns, which the registration "
+                "to CT takes up." if pp else
+                "the focal length trades with the views' distances; the stereo baseline takes the same scale.")
+        if cfg.principal_point == "field-centre":
+            then += f" cx, cy are fixed at the intensifier's field centre (held-out RMS {hf[0]:.4f} -> {hk[0]:.4f} px)."
+        elif pp and centre is not None:
+            then += (" For cx, cy with their physical meaning, principal_point: field-centre fixes them at the "
+                     "intensifier's field centre (a worse fit).")
         warnings.append(warning(
             "weak-intrinsics", f"calibrate: {name}: {what}: the views do not pin "
-            f"{'it' if len(weak) == 1 else 'them'} down.  With a narrow field (f = {f:.0f} px, "
-            f"{np.degrees(np.arctan(0.5 * max(image_size) / f)):.1f} deg half-angle) a shift of the principal point "
-            "trades with the views' tilts and the tangential terms p1, p2, so a distortion the model lacks moves it "
-            f"far, the focal length with it, and the triangulated shape; the reprojection does not show it.  {then}",
-            logger=log, view=name, parameters=weak, principal_point=info["source"]))
+            f"{'it' if len(weak) == 1 else 'them'} down (a narrow field, f = {f:.0f} px, "
+            f"{np.degrees(np.arctan(0.5 * max(image_size) / f)):.1f} deg half-angle, and a distortion the model "
+            f"lacks).  {then}", logger=log, view=name, parameters=weak, principal_point=info["source"]))
     return kept, hk, info, weak
 
 
