@@ -340,17 +340,21 @@ def _principal_point(name: str, free, hf, image_size, centre, cfg: CalibrateConf
                 f"of the camera (here about {np.degrees(np.arctan(shift / f)):.2f} deg per jackknife sd), both cameras "
                 "turn together and the triangulated shape is kept; the camera frame turns, which the registration "
                 "to CT takes up." if pp else
-                "the focal length trades with the views' distances; the stereo baseline takes the same scale.")
+                "the focal length trades with the views' distances; a stereo baseline calibrated with it takes "
+                "the same scale.")
         if cfg.principal_point == "field-centre":
             then += f" cx, cy are fixed at the intensifier's field centre (held-out RMS {hf[0]:.4f} -> {hk[0]:.4f} px)."
         elif pp and centre is not None:
             then += (" For cx, cy with their physical meaning, principal_point: field-centre fixes them at the "
                      "intensifier's field centre (a worse fit).")
+        half = float(np.degrees(np.arctan(0.5 * max(image_size) / f)))
+        why = (f"a narrow field, f = {f:.0f} px, {half:.1f} deg half-angle, and a distortion the model lacks" if half < 15
+               else f"f = {f:.0f} px, {half:.1f} deg half-angle: too few or too alike views, or a distortion the "
+                    "model lacks")
         warnings.append(warning(
             "weak-intrinsics", f"calibrate: {name}: {what}: the views do not pin "
-            f"{'it' if len(weak) == 1 else 'them'} down (a narrow field, f = {f:.0f} px, "
-            f"{np.degrees(np.arctan(0.5 * max(image_size) / f)):.1f} deg half-angle, and a distortion the model "
-            f"lacks).  {then}", logger=log, view=name, parameters=weak, principal_point=info["source"]))
+            f"{'it' if len(weak) == 1 else 'them'} down ({why}).  {then}", logger=log, view=name, parameters=weak,
+            principal_point=info["source"]))
     return kept, hk, info, weak
 
 
