@@ -66,7 +66,10 @@ def twin_check(trial_dir) -> dict:
         X = g[["x_mm", "y_mm", "z_mm"]].to_numpy(float)
         D = g[["dx_mm", "dy_mm", "dz_mm"]].to_numpy(float)
         pos[name] = np.linalg.norm(X - T, axis=1)
-        disp[name] = np.linalg.norm(D - (T - per_frame[name][0]), axis=1)
+        # a displacement needs the marker at the registration frame (one hidden there has none)
+        ok = np.isfinite(D).all(axis=1)
+        if ok.any():
+            disp[name] = np.linalg.norm(D[ok] - (T[ok] - per_frame[name][0]), axis=1)
     allp = np.concatenate(list(pos.values())) if pos else np.array([])
     alld = np.concatenate(list(disp.values())) if disp else np.array([])
     out["markers_fe"] = {"position": _stats(allp), "displacement": _stats(alld),
