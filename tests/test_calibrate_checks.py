@@ -216,6 +216,28 @@ def test_wrong_circle_grid_exits_2_naming_the_grid_the_views_show(tmp_path, args
     assert ok.exit_code == 0, ok.output
 
 
+def test_grid_larger_than_the_plate_in_every_view_is_warned(tmp_path):
+    """--grid 7x5 for a 6x5 plate: read as a grid cut off by the field, it calibrates (exit 0),
+    but every view showing the same 30 of 35 points gets a ``grid-never-whole`` warning; the
+    right --grid gets none."""
+    import json
+    d = tmp_path / "views"
+    d.mkdir()
+    for k, img in enumerate(_bead_views()):
+        cv2.imwrite(str(d / f"v{k}.png"), img)
+    codes = {}
+    for grid in ("7x5", "6x5"):
+        out = tmp_path / grid
+        r = CliRunner().invoke(cli, ["calibrate", "--images", str(d), "--pattern", "circles", "--grid", grid,
+                                     "--spacing-mm", "10", "--no-loop", "-o", str(out)])
+        assert r.exit_code == 0, r.output
+        codes[grid] = [w for w in json.loads((out / "calibration.json").read_text())["warnings"]
+                       if w["code"] == "grid-never-whole"]
+    print(codes["7x5"])
+    assert len(codes["7x5"]) == 1 and "30 of the 35 points" in codes["7x5"][0]["message"]
+    assert codes["6x5"] == []
+
+
 def test_too_few_blobs_message_suggests_diameter():
     img = np.full((200, 200), 200.0, np.float32)
     img[90:110, 90:110] = 40.0  # one blob, no grid

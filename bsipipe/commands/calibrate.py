@@ -358,6 +358,27 @@ def _principal_point(name: str, free, hf, image_size, centre, cfg: CalibrateConf
     return kept, hk, info, weak
 
 
+def _same_part_everywhere(name: str, cfg: CalibrateConfig, views: dict):
+    """A ``grid-never-whole`` warning (or None) when every view of a bead grid shows the same
+    number of points, fewer than ``--grid`` holds: a grid cut off by the field is read as such
+    and calibrates, but one cut off the same way in every view is more likely a plate smaller
+    than ``--grid`` (its ids are then relative to the corner seen, which stereo pairs rely on)."""
+    from ..imaging.gridfind import parse_grid
+    from ..quality import warning
+    if cfg.pattern not in ("circles", "asymmetric-circles") or len(views) < 3:
+        return None
+    cols, rows = parse_grid(cfg.grid)
+    counts = {len(v.ids) for v in views.values()}
+    if len(counts) != 1 or next(iter(counts)) >= cols * rows:
+        return None
+    n = next(iter(counts))
+    return warning("grid-never-whole",
+                   f"calibrate: {name}: every one of the {len(views)} views shows {n} of the {cols * rows} points of "
+                   f"the {cfg.grid} {cfg.pattern} grid: a grid cut off by the field differs from view to view, so the "
+                   "plate is likely smaller than --grid; give its own grid (circles per row x rows)",
+                   logger=log, view=name, n_points=n, grid_points=cols * rows)
+
+
 def _failures(rejected: dict[str, str], max_reasons: int = 3) -> str:
     """The reasons views failed, each once with the views it applies to (the same wrong
     ``--grid`` fails every view alike)."""
@@ -425,6 +446,9 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
             raise ProcessingError(f"camera {name}: the target was found in {len(views)} image(s), calibration needs "
                                   f"at least 3{why}", path=sources[0][1])
         image_size = size[0]
+        warn = _same_part_everywhere(name, cfg, views)
+        if warn:
+            warnings.append(warn)
         try:
             centre = None if size[2] == "none" else size[2]
             base = calibrate_with_rejection(list(views.values()), image_size, spec0,
