@@ -26,7 +26,7 @@ study: $(STAMP) ccx
 	$(BIN)/bsipipe study configs/study.yaml
 
 test: $(STAMP) ccx
-	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2
 
 # SIGKILL `bsipipe study` of the sample study at 20 random moments, rerun, and compare with a clean run
 # (issue 7); runs in a scratch folder (not results/), about 20 clean-study times.
