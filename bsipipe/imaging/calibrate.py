@@ -549,7 +549,8 @@ def calibrate_camera(views: Sequence[ViewData], image_size: tuple[int, int], spe
            if n in ("fx", "fy", "cx", "cy") or n in spec.coeff_names()}
     if spec.fix_aspect_ratio and std.get("fx", 0.0) == 0.0:
         std["fx"] = std["fy"] * K[0, 0] / K[1, 1]  # OpenCV fits fy and keeps fx = aspect * fy
-    n_params = (3 if spec.fix_aspect_ratio else 4) - (2 if spec.fix_principal_point else 0) + spec.n_coeffs - (3 if spec.thin_prism and not spec.rational else 0)
+    n_params = ((3 if spec.fix_aspect_ratio else 4) - (2 if spec.fix_principal_point else 0) + spec.n_coeffs
+                - (3 if spec.thin_prism and not spec.rational else 0))
     n_params += 6 * len(views)
     if spec.s_distortion:
         n_params += 2

@@ -85,24 +85,8 @@ class ViewGeometry:
 
 def _calibrate_camera_model(d: Mapping):
     """``bsipipe calibrate``'s camera model from its ``calibration.json`` entry."""
-    from .calibrate import CameraModel, LocalField, ModelSpec
-    names = list(d.get("dist_coeff_names") or [])
-    n = len(d["dist_coeffs"])
-    desc = str(d.get("dist_model", ""))
-    spec = ModelSpec(rational=n >= 8, thin_prism=n >= 12, s_distortion=d.get("s_distortion") is not None,
-                     local=d.get("local_distortion") is not None, fix_aspect_ratio="fixed-aspect" in desc,
-                     fix_principal_point="fixed-principal-point" in desc)
-    twist = centre = None
-    if d.get("s_distortion"):
-        s = d["s_distortion"]
-        twist = np.array([s["t1_rad"], s["t2_rad"]], float)
-        centre = np.asarray(s.get("centre_px"), float) if s.get("centre_px") is not None else None
-    local = None
-    if d.get("local_distortion"):
-        local = LocalField.from_dict(d["local_distortion"])
-    del names
-    return CameraModel(tuple(int(v) for v in d["image_size"]), np.asarray(d["camera_matrix"], float).reshape(3, 3),
-                       np.asarray(d["dist_coeffs"], float).ravel(), spec, twist, local, centre)
+    from .calibrate import CameraModel
+    return CameraModel.from_dict(d)
 
 
 def _opencv_maps(model) -> tuple[Callable, Callable]:
