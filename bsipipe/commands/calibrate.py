@@ -473,7 +473,7 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
         final.heldout_rms_px, final.heldout_per_view_rms_px = hf
         final.std_jackknife = jackknife_std(folds)
         centre = None if size[2] in (None, "none") else tuple(size[2])
-        final, hf, pp_info, weak = _principal_point(name, final, hf, image_size, centre, cfg, sources[0][1],
+        final, hf, pp_info, _ = _principal_point(name, final, hf, image_size, centre, cfg, sources[0][1],
                                                     warnings)
         final.rejected = rejected
         cals[name] = final
