@@ -73,6 +73,10 @@ class TrackingConfig(StrictModel):
     max_extrapolation_frames: int = Field(3, ge=0, description="a hidden marker moves on at its last velocity "
                                           "for at most this many frames")
     min_track_frames: int = Field(3, ge=1, description="automatic mode: shorter tracks are dropped")
+    second_look_k_sigma: PositiveFloat | None = Field(
+        2.5, description="seeded mode: a marker nothing matched is looked for again in its gate with this window "
+                         "threshold (robust sd), taken only if it passes min_snr and has the marker's own amplitude "
+                         "and width (status 'weak'); null: no second look")
 
 
 class TrackConfig(StrictModel):

@@ -38,7 +38,7 @@ import bisect
 import itertools
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Iterable, Literal
 
 import numpy as np
@@ -75,7 +75,19 @@ class TrackSettings:
     width a candidate must lie within to be taken for it (an instrument's edge or a larger
     bead is not the marker that vanished behind it); ``memory``:
     frames a track may miss before it ends (automatic mode only; seeded markers are looked
-    for until the end); ``min_track_frames``: shorter automatic tracks are dropped.
+    for until the end); ``min_track_frames``: shorter automatic tracks are dropped;
+    ``second_look_k_sigma``: a seeded marker that nothing in its gate matched, measured in
+    the last ``max_extrapolation_frames`` frames, is looked for once more within
+    ``second_look_radius_px`` (default ``max(1, d/4)``) of its prediction with this lower
+    window threshold (robust sd of the window's smoothed top-hat, instead of the detector's
+    ``window_k_sigma``); a candidate is taken only if it also passes ``min_snr`` and looks
+    like the whole marker (``appearance`` once the marker has 3 measurements, amplitude at
+    least ``partial_fraction`` of its median).  A threshold over a whole search window must
+    hold its false alarms down over every pixel of it, and an instrument's edge or bone
+    texture in the window inflates the spread it is set from; near the prediction of a
+    marker seen a frame or two ago the area is a few pixels and the marker's own amplitude
+    and width are the stronger test (None: no second look).  Such positions have status
+    ``weak``.
     """
 
     gate_px: float | None = None
@@ -89,13 +101,17 @@ class TrackSettings:
     max_extrapolation_frames: int = 3
     min_track_frames: int = 3
     appearance: tuple[float, float, float, float] = (0.3, 2.5, 0.6, 1.6)
+    second_look_k_sigma: float | None = 2.5
+    second_look_radius_px: float | None = None
 
     def resolved(self, d: float) -> dict:
         return {"gate_px": self.gate_px if self.gate_px is not None else max(3.0, 1.5 * d),
                 "gate_growth_px": self.gate_growth_px if self.gate_growth_px is not None else 0.25 * d,
                 "max_gate_px": self.max_gate_px if self.max_gate_px is not None else 4.0 * d,
                 "seed_radius_px": self.seed_radius_px if self.seed_radius_px is not None else max(4.0, 1.5 * d),
-                "ambiguity_px": self.ambiguity_px if self.ambiguity_px is not None else 0.5 * d}
+                "ambiguity_px": self.ambiguity_px if self.ambiguity_px is not None else 0.5 * d,
+                "second_look_radius_px": (self.second_look_radius_px if self.second_look_radius_px is not None
+                                          else max(1.0, 0.25 * d))}
 
 
 @dataclass
@@ -282,6 +298,10 @@ def track_view(frames: Iterable, seeds: pd.DataFrame | dict | None, diameter_px:
         camp, csig = cand["amplitude"], cand["sigma_px"]
         compat = _looks_like(live, camp, csig, settings)
         match, d2 = _assign(live, pred, gates, cxy, compat)
+        weak = np.zeros(len(live), bool)
+        if settings.second_look_k_sigma is not None and k > 0:
+            cand, match, d2, weak = _second_look(f, img, live, pred, np.minimum(gates, S["second_look_radius_px"]), cand, match, d2,
+                                                 diameter_px, polarity, detection, fov, settings)
         amb = _ambiguous_pairs(match, d2, S["ambiguity_px"] ** 2)
         for i, j in amb:
             events.append({"view": view, "frame": f, "marker": live[i].name, "kind": "ambiguous",
@@ -313,7 +333,7 @@ def track_view(frames: Iterable, seeds: pd.DataFrame | dict | None, diameter_px:
                 amp = amps[i]
                 med = m.amp_median
                 partial = bool(np.isfinite(med) and amp < settings.partial_fraction * med)
-                status[i] = "partial" if partial else "found"
+                status[i] = "partial" if partial else "weak" if weak[i] else "found"
                 if m.lost_since is not None:
                     events.append({"view": view, "frame": f, "marker": m.name, "kind": "refound",
                                    "gap_frames": int(f - m.lost_since),
@@ -334,6 +354,59 @@ def track_view(frames: Iterable, seeds: pd.DataFrame | dict | None, diameter_px:
         cols["pred"].append(np.asarray(pred, float).reshape(nm, 2))
         cols["gate_px"].append(np.asarray(gates, float))
     return TrackResult(_seeded_table(view, names, cols), events, fov_info, {**settings.__dict__, **S})
+
+
+def _second_look(frame: int, img, live: list[_Marker], pred, gates, cand: dict, match, d2, diameter_px: float,
+                 polarity: Polarity, detection: DetectionSettings, fov, settings: TrackSettings):
+    """Look once more, in ``frame``, for the markers nothing matched (``match`` -1) that have a
+    known appearance (3 measurements) and were measured in the last
+    ``max_extrapolation_frames`` frames (at least the last one: their prediction still follows
+    their motion; a marker hidden for longer is the first pass's to find again).
+
+    Candidates in ``gates`` (the caller passes ``second_look_radius_px``, not the search
+    gate: a low threshold is only safe over a small area) with the window
+    threshold lowered to ``settings.second_look_k_sigma``, away (half a diameter) from every
+    candidate already matched, that pass the detector's other tests (SNR, shape) and look like
+    the whole marker, are assigned as in the first pass.  Returns the candidates (the first
+    pass's, then the new ones), ``match`` and ``d2`` over them, and which markers the second
+    look found."""
+    n_x = max(settings.max_extrapolation_frames, 1)
+    miss = np.flatnonzero((match < 0) & np.array([np.isfinite(m.amp_median) and frame - m.frame <= n_x for m in live],
+                                                 bool))
+    weak = np.zeros(len(live), bool)
+    if len(miss) == 0 or settings.second_look_k_sigma >= detection.window_k_sigma:
+        return cand, match, d2, weak
+    low = detection.updated(window_k_sigma=float(settings.second_look_k_sigma))
+    more = window_arrays(img, pred[miss], gates[miss], diameter_px, polarity, low, fov)
+    xy = np.column_stack([more["x_px"], more["y_px"]])
+    if len(xy) == 0:
+        return cand, match, d2, weak
+    taken = np.column_stack([cand["x_px"], cand["y_px"]])[match[match >= 0]]
+    if len(taken):
+        free = (((xy[:, None, :] - taken[None, :, :]) ** 2).sum(axis=-1) > (0.5 * diameter_px) ** 2).all(axis=1)
+        if not free.all():
+            more = {c: v[free] for c, v in more.items()}
+            xy = xy[free]
+            if len(xy) == 0:
+                return cand, match, d2, weak
+    ms = [live[i] for i in miss]
+    # a weak find must look like the whole marker: not a partly hidden one (amplitude at least
+    # ``partial_fraction`` of its median), which is the first pass's to take or not
+    lo_a = max(settings.appearance[0], settings.partial_fraction)
+    whole = replace(settings, appearance=(lo_a, *settings.appearance[1:]))
+    compat = _looks_like(ms, more["amplitude"], more["sigma_px"], whole)
+    m2, dd2 = _assign(ms, pred[miss], gates[miss], xy, compat)
+    hit = m2 >= 0
+    if not hit.any():
+        return cand, match, d2, weak
+    n0 = len(cand["x_px"])
+    cand = {c: np.concatenate([cand[c], more[c]]) for c in cand}
+    match = match.copy()
+    match[miss[hit]] = n0 + m2[hit]
+    d2 = np.hstack([d2.reshape(len(live), n0), np.full((len(live), len(xy)), np.inf)])
+    d2[miss[:, None], n0 + np.arange(len(xy))[None, :]] = dd2
+    weak[miss[hit]] = True
+    return cand, match, d2, weak
 
 
 def _seeded_table(view: str, names: list[str], cols: dict) -> pd.DataFrame:
