@@ -1700,8 +1700,9 @@ def window_arrays(frame: np.ndarray, centres_xy, radii_px, diameter_px: float, p
 
     All windows are cut out to the same size and laid side by side in one strip, so the
     top-hat, smoothing and peak search are one OpenCV call each whatever the number of
-    windows; threshold and noise are each window's own (robust statistics per window).
-    A window's border, where the top-hat sees its neighbour in the strip, is left out.
+    windows; each window is padded in the strip by its own edge columns, so its top-hat does
+    not see its neighbours; threshold and noise are each window's own (robust statistics per
+    window): a window's candidates do not depend on the other windows searched with it.
     Returns a dict of :data:`COLUMNS` arrays for every candidate in the windows (duplicates
     from overlapping windows merged).
     """
@@ -1753,7 +1754,15 @@ def window_arrays(frame: np.ndarray, centres_xy, radii_px, diameter_px: float, p
             use = inf if use is None else use & inf
     core = _strip_core(W, n, b)
     use = core if use is None else core & use.transpose(1, 0, 2).reshape(W, n * W)
-    ts = smoothed_tophat(strip, diameter_px, polarity, k, sg)
+    # each window's top-hat as if it were alone: windows side by side would see their
+    # neighbours across the seams (the closing and the smoothing reach ``pad`` pixels), and the
+    # seam's response would enter the window's statistics, so its threshold would depend on
+    # which other markers are searched in the same frame; each window is padded by its own
+    # edge columns instead (the strip's top and bottom edges are replicated, as its sides)
+    pad = 2 * (k // 2) + len(_gauss_kernel(float(sg))) // 2
+    wide = np.pad(strip.reshape(W, n, W), ((0, 0), (0, 0), (pad, pad)), mode="edge").reshape(W, -1)
+    ts = smoothed_tophat(wide, diameter_px, polarity, k, sg).reshape(W, n, W + 2 * pad)
+    ts = np.ascontiguousarray(ts[:, :, pad:pad + W]).reshape(W, n * W)
     tsw = ts.reshape(W, n, W).transpose(1, 0, 2)        # (n, W, W)
     # per-window robust statistics (a window cut by the image edge repeats its edge pixels;
     # every other pixel of each axis is plenty for a median)
