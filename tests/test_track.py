@@ -425,3 +425,38 @@ def test_second_look_finds_faint_marker_near_its_prediction():
           f"RMS {np.sqrt(np.mean(np.square(weak_err))):.3f} px (max {np.max(weak_err):.3f})")
     assert found[2.5] >= found[None] + 10
     assert np.sqrt(np.mean(np.square(weak_err))) < 0.5
+
+
+def test_assignment_may_leave_a_hidden_marker_unmatched():
+    """The situation that swapped two markers on compressed (MP4) frames: A is tracked (gate
+    7 px) and finds its bead 0.45 px from its prediction (c1) and a partial blob 5 px away
+    (c2); B, hidden for a while, has a gate grown to 19 px that reaches c1 (15 px) and C's
+    bead (c3, 17.8 px); C finds c3 at 0.3 px.  When every marker must take a candidate, the
+    cheapest complete matching gives c1 to B and the blob to A: a swap.  With the option to
+    stay unmatched (at the cost of a match at the gate's edge) A keeps c1 and B stays lost."""
+    from bsipipe.imaging.track import _assign, _Marker
+    ms = [_Marker(n, np.zeros(2), 0) for n in "ABC"]
+    pred = np.array([[491.91, 508.90], [492.52, 493.84], [478.2, 504.4]])
+    gates = np.array([7.15, 19.08, 7.15])
+    cand = np.array([[492.35, 508.83], [492.95, 503.84], [478.02, 504.17]])
+    compat = np.array([[True, True, False], [True, False, True], [False, False, True]])
+    forced, _ = _assign(ms, pred, gates, cand, compat)
+    free, _ = _assign(ms, pred, gates, cand, compat, miss_cost=1.0)
+    assert forced.tolist() == [1, 0, 2]                 # the swap
+    assert free.tolist() == [0, -1, 2]
+
+
+def test_marker_found_again_must_look_whole():
+    """A marker being found again after a gap takes only a candidate of at least
+    ``partial_fraction`` of its median amplitude; one tracked without a gap may take a
+    partial one (it is passing behind something)."""
+    from bsipipe.imaging.track import _looks_like, _Marker
+    tracked, hidden = _Marker("T", np.zeros(2), 0), _Marker("H", np.zeros(2), 0)
+    for m in (tracked, hidden):
+        for f in range(1, 4):
+            m.update(f, np.zeros(2), 10.0, 1.0)
+    hidden.lost_since = 4
+    amp = np.array([4.0, 8.0])              # a partial candidate (0.4 of the median) and a whole one
+    ok = _looks_like([tracked, hidden], amp, np.array([1.0, 1.0]), TrackSettings(),
+                     whole=[m.lost_since is not None for m in (tracked, hidden)])
+    assert ok.tolist() == [[True, True], [False, True]]

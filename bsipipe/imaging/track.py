@@ -38,7 +38,7 @@ import bisect
 import itertools
 import logging
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Iterable, Literal
 
 import numpy as np
@@ -171,11 +171,17 @@ def _sorted_median(srt: list) -> float:
     return float(srt[n // 2]) if n % 2 else float((srt[n // 2 - 1] + srt[n // 2]) / 2)
 
 
-def _looks_like(markers: list[_Marker], amp: np.ndarray, sigma: np.ndarray, settings: "TrackSettings") -> np.ndarray:
+def _looks_like(markers: list[_Marker], amp: np.ndarray, sigma: np.ndarray, settings: "TrackSettings",
+                whole=None) -> np.ndarray:
     """Which candidates (amplitudes, widths) could be each marker, (n_markers, n_candidates)
     bool: within the factors of ``settings.appearance`` of the marker's median amplitude and
-    width (once it has 3 measurements; a candidate without a fitted width passes that test)."""
+    width (once it has 3 measurements; a candidate without a fitted width passes that test).
+    ``whole`` (n_markers,) bool: those markers must look whole, an amplitude of at least
+    ``partial_fraction`` of their median (not a partly hidden one)."""
     lo_a, hi_a, lo_s, hi_s = settings.appearance
+    lo_a = np.full((len(markers), 1), lo_a)
+    if whole is not None:
+        lo_a[np.asarray(whole, bool)] = max(settings.appearance[0], settings.partial_fraction)
     ma = np.array([m.amp_median for m in markers], float)[:, None]
     ms = np.array([m.sigma_median for m in markers], float)[:, None]
     amp = np.asarray(amp, float)[None, :]
@@ -198,9 +204,15 @@ class TrackResult:
 
 
 def _assign(markers: list[_Marker], pred: np.ndarray, gates: np.ndarray, cand_xy: np.ndarray,
-            compatible: np.ndarray | None = None):
+            compatible: np.ndarray | None = None, miss_cost: float | None = None):
     """Optimal one-to-one matching of markers to candidates inside the gates (and, where
     given, ``compatible`` (n, m): candidates that look like the marker).
+
+    The cost of a pair is ``d^2 / gate^2`` (1 at the gate's edge).  ``miss_cost``: each
+    marker may also stay unmatched at this cost, so a marker is not pushed onto a poor
+    candidate (one a neighbour fits far better, say, or one at the edge of a gate grown while
+    it was hidden) only because every marker must take something; None: every marker takes
+    a candidate whenever one is allowed (trackpy's linking).
 
     Returns ``match`` (marker index -> candidate index or -1) and the squared distances
     (inf where a pair is not allowed).
@@ -216,7 +228,14 @@ def _assign(markers: list[_Marker], pred: np.ndarray, gates: np.ndarray, cand_xy
         allowed &= compatible
     big = 1e6
     c = np.where(allowed, cost, big)
+    if miss_cost is not None:
+        # one "unmatched" column per marker, its own only
+        miss = np.full((n, n), big)
+        np.fill_diagonal(miss, miss_cost)
+        c = np.hstack([c, miss])
     r, k = linear_sum_assignment(c)
+    keep = k < m
+    r, k = r[keep], k[keep]
     ok = allowed[r, k]
     match[r[ok]] = k[ok]
     return match, np.where(allowed, d2, np.inf)
@@ -296,8 +315,11 @@ def track_view(frames: Iterable, seeds: pd.DataFrame | dict | None, diameter_px:
         cand = window_arrays(img, pred, gates, diameter_px, polarity, detection, fov)
         cxy = np.column_stack([cand["x_px"], cand["y_px"]])
         camp, csig = cand["amplitude"], cand["sigma_px"]
-        compat = _looks_like(live, camp, csig, settings)
-        match, d2 = _assign(live, pred, gates, cxy, compat)
+        # a marker being found again after a gap must look whole: a partial candidate at the
+        # edge of a gate grown while it was hidden is more likely clutter, or the edge of the
+        # instrument that hid it, than the marker (it is taken a frame later, whole)
+        compat = _looks_like(live, camp, csig, settings, whole=[m.lost_since is not None for m in live])
+        match, d2 = _assign(live, pred, gates, cxy, compat, miss_cost=1.0)
         weak = np.zeros(len(live), bool)
         if settings.second_look_k_sigma is not None and k > 0:
             cand, match, d2, weak = _second_look(f, img, live, pred, np.minimum(gates, S["second_look_radius_px"]), cand, match, d2,
@@ -392,10 +414,8 @@ def _second_look(frame: int, img, live: list[_Marker], pred, gates, cand: dict, 
     ms = [live[i] for i in miss]
     # a weak find must look like the whole marker: not a partly hidden one (amplitude at least
     # ``partial_fraction`` of its median), which is the first pass's to take or not
-    lo_a = max(settings.appearance[0], settings.partial_fraction)
-    whole = replace(settings, appearance=(lo_a, *settings.appearance[1:]))
-    compat = _looks_like(ms, more["amplitude"], more["sigma_px"], whole)
-    m2, dd2 = _assign(ms, pred[miss], gates[miss], xy, compat)
+    compat = _looks_like(ms, more["amplitude"], more["sigma_px"], settings, whole=np.ones(len(ms), bool))
+    m2, dd2 = _assign(ms, pred[miss], gates[miss], xy, compat, miss_cost=1.0)
     hit = m2 >= 0
     if not hit.any():
         return cand, match, d2, weak
