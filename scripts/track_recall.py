@@ -1,0 +1,93 @@
+"""Score ``bsipipe track`` against a twin's truth, per trial and per marker.
+
+    python scripts/track_recall.py results/sheep1 [TRIAL_DIR ...] [--mp4 WORKDIR]
+
+Each TRIAL_DIR is a study trial (``synth/`` with ``truth_markers.csv``, ``track/`` with
+``markers2d.csv`` and ``markers3d.csv``).  Printed per trial: the visible positions (truth
+``visible``) found within 1 px of the truth, the positions more than 1 px off their marker
+(on another marker: an identity swap; elsewhere: clutter), the two-view 3-D points, and the
+markers that miss the most.  ``--mp4 WORKDIR``: the trial's frames are first written to MP4
+(OpenCV ``mp4v`` at its default quality, the trial's frame rate) in ``WORKDIR/<trial>`` and
+tracked there with the trial's own track config: the same score on compressed video.
+"""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+
+def score(synth_dir: Path, track_dir: Path) -> dict:
+    tr = pd.read_csv(synth_dir / "truth_markers.csv", dtype={"marker": str, "view": str})
+    tk = pd.read_csv(track_dir / "markers2d.csv", dtype={"marker": str, "view": str})
+    m = tr.merge(tk[["view", "frame", "marker", "x_px", "y_px", "found"]], on=["view", "frame", "marker"],
+                 suffixes=("_t", ""), how="left")
+    m["found"] = m["found"].astype("boolean").fillna(False).astype(bool)
+    m["err"] = np.hypot(m["x_px"] - m["x_px_t"], m["y_px"] - m["y_px_t"])
+    vis = m["visible"].astype(bool)
+    hit = vis & m["found"] & (m["err"] <= 1.0)
+    off = m[m["found"] & ~(m["err"] <= 1.0)]
+    swap = 0
+    for r in off.itertuples():
+        o = tr[(tr["view"] == r.view) & (tr["frame"] == r.frame) & (tr["marker"] != r.marker)]
+        swap += int(np.hypot(o["x_px"] - r.x_px, o["y_px"] - r.y_px).min() < 1.5) if len(o) else 0
+    p3 = pd.read_csv(track_dir / "markers3d.csv") if (track_dir / "markers3d.csv").exists() else None
+    per = (m.assign(vis=vis, hit=hit).groupby(["view", "marker"])[["vis", "hit"]].sum()
+           .assign(missed=lambda d: d["vis"] - d["hit"]).sort_values("missed", ascending=False))
+    return {"visible": int(vis.sum()), "found_1px": int(hit.sum()), "off_1px": int(len(off)), "swaps": swap,
+            "clutter": int(len(off)) - swap,
+            "two_view": None if p3 is None else int((p3["n_views"] == 2).sum()),
+            "worst": [(v, mk, int(r.hit), int(r.vis)) for (v, mk), r in per.head(3).iterrows() if r.missed > 0]}
+
+
+def to_mp4(trial: Path, work: Path) -> Path:
+    """The trial's frames as MP4 and its track config pointing at them; returns the track output."""
+    import cv2
+    import yaml
+
+    work.mkdir(parents=True, exist_ok=True)
+    cfg = yaml.safe_load((trial / "config" / "track.yaml").read_text())
+    fps = float(cfg.get("fps") or 2.0)
+    for v, src in cfg["views"].items():
+        frames = sorted(Path(src).glob("*.png"), key=lambda p: [int(t) if t.isdigit() else t
+                                                               for t in re.split(r"(\d+)", p.name)])
+        first = cv2.imread(str(frames[0]), cv2.IMREAD_GRAYSCALE)
+        out = cv2.VideoWriter(str(work / f"{v}.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), fps,
+                              first.shape[::-1], isColor=False)
+        for f in frames:
+            out.write(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE))
+        out.release()
+        cfg["views"][v] = str(work / f"{v}.mp4")
+    (work / "track.yaml").write_text(yaml.safe_dump(cfg))
+    subprocess.run([sys.executable, "-m", "bsipipe.cli", "-q", "track", str(work / "track.yaml"),
+                    "-o", str(work / "track")], check=True, stdout=subprocess.DEVNULL)
+    return work / "track"
+
+
+if __name__ == "__main__":
+    args = sys.argv[1:]
+    if not args or args[0] in ("-h", "--help"):
+        sys.exit(__doc__)
+    mp4 = None
+    if "--mp4" in args:
+        i = args.index("--mp4")
+        mp4 = Path(args[i + 1])
+        del args[i:i + 2]
+    total = {"visible": 0, "found_1px": 0, "off_1px": 0}
+    for d in (Path(a) for a in args if (Path(a) / "synth" / "truth_markers.csv").exists()):
+        track = to_mp4(d, mp4 / d.name) if mp4 is not None else d / "track"
+        s = score(d / "synth", track)
+        for k in total:
+            total[k] += s[k]
+        print(f"{d}{' (MP4)' if mp4 else ''}: found within 1 px {s['found_1px']}/{s['visible']} "
+              f"({100 * s['found_1px'] / s['visible']:.2f} %); off > 1 px {s['off_1px']} (swaps {s['swaps']}, "
+              f"clutter {s['clutter']}); two-view points {s['two_view']}; most missed "
+              + ", ".join(f"{v} {mk} {h}/{n}" for v, mk, h, n in s["worst"]))
+    if total["visible"] and len(args) > 1:
+        print(f"all: found within 1 px {total['found_1px']}/{total['visible']} "
+              f"({100 * total['found_1px'] / total['visible']:.2f} %); off > 1 px {total['off_1px']}")
