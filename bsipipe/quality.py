@@ -16,6 +16,10 @@ WARNING.  A warning is a dict ``{"code": ..., "message": ..., **details}``; the 
     The calibration target's detected points, pooled over the views used, span a convex hull
     covering less than half of the field of view (the intensifier's circle where the images
     show one, else the image): the distortion model is extrapolated over the rest.
+``lossy-frames``
+    ``track``: a view's frames come lossily compressed (JPEG files, a video codec other than
+    a raw or lossless one, a lossy DICOM transfer syntax): the codec removes the pixel noise
+    the detection thresholds, SNR and ``sd_px`` are set from, and smears small beads.
 ``large-ray-gap``
     Triangulated points whose two back-projected rays pass further apart than five times the
     median ray gap of their marker (and at least :data:`RAY_GAP_FLOOR_MM`) or than a stated

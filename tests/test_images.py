@@ -8,7 +8,7 @@ import pytest
 import tifffile
 
 from bsipipe.errors import InputError
-from bsipipe.io.images import count_frames, iter_frames, read_image
+from bsipipe.io.images import count_frames, iter_frames, lossy_compression, read_image
 
 
 def _ramp(h=24, w=32, dtype=np.uint8, seed=0):
@@ -284,3 +284,32 @@ def test_damaged_stacks_videos_and_jpegs_are_refused(tmp_path):
         (tmp_path / f"{name}_bad.jpg").write_bytes(bytes(bad))
         with pytest.raises(InputError, match=f"{name}_bad.jpg.*corrupt JPEG data"):
             read_image(tmp_path / f"{name}_bad.jpg")
+
+
+def test_lossy_compression_of_a_source(tmp_path):
+    """JPEG files and videos in a lossy codec are named (the track command warns of them);
+    PNG and TIFF frames and videos in a lossless codec (FFV1, HuffYUV) are not."""
+    img = np.full((48, 64), 90, np.uint8)
+    for name in ("a.png", "b.png"):
+        cv2.imwrite(str(tmp_path / name), img)
+    tifffile.imwrite(tmp_path / "s.tif", np.stack([img, img]))
+    (tmp_path / "jpg").mkdir()
+    cv2.imwrite(str(tmp_path / "jpg" / "f1.jpg"), img)
+    assert lossy_compression(tmp_path / "a.png") is None
+    assert lossy_compression(str(tmp_path / "*.png")) is None
+    assert lossy_compression(tmp_path / "s.tif") is None
+    assert lossy_compression(tmp_path / "jpg") == "JPEG files"
+    found = {}
+    for fourcc, suffix in (("FFV1", ".avi"), ("HFYU", ".avi"), ("MJPG", ".avi"), ("mp4v", ".mp4")):
+        p = tmp_path / f"v_{fourcc}{suffix}"
+        w = cv2.VideoWriter(str(p), cv2.VideoWriter_fourcc(*fourcc), 25.0, (64, 48), False)
+        if not w.isOpened():
+            continue
+        for k in range(3):
+            w.write(img)
+        w.release()
+        found[fourcc] = lossy_compression(p)
+    assert found.get("MJPG") == "video codec MJPG"
+    assert found.get("mp4v", "").startswith("video codec ")          # OpenCV writes mp4v as FMP4
+    assert found.get("FFV1", None) is None and found.get("HFYU", None) is None
+    assert {"MJPG", "mp4v"} <= set(found)

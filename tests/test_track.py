@@ -212,6 +212,8 @@ def test_cli_track_real_frame(tmp_path):
     assert all(v["cam1"]["median_snr"] > 10 for v in j["markers"].values())
     assert (out / "track.png").stat().st_size > 0 and (out / "overlay.png").stat().st_size > 0
     assert not (out / "markers3d.csv").exists()
+    # the frame is a JPEG: its SNR and sd_px come from noise the codec partly removed
+    assert [(w["code"], w["views"]) for w in j["warnings"]] == [("lossy-frames", {"cam1": "JPEG files"})]
 
 
 def test_cli_track_xmalab_seeds_and_config(tmp_path):
