@@ -287,3 +287,45 @@ def test_smooth_tracks_matches_the_reference_fit_per_track():
             np.testing.assert_allclose(tr[col].to_numpy()[rows], x_ref[rows], rtol=1e-10)
         _assert_variances_close(tr.sd_px_smooth.to_numpy()[rows] ** 2, var_ref[rows])
         assert tr.x_px_smooth.notna().sum() == rows.sum()
+
+
+def _pinhole(name: str, R: np.ndarray, centre_mm: np.ndarray, f_px: float = 5000.0, c_px: float = 512.0):
+    from bsipipe.imaging.triangulate import ViewGeometry
+    K = np.array([[f_px, 0, c_px], [0, f_px, c_px], [0, 0, 1.0]])
+    t = -R @ centre_mm
+    return ViewGeometry(name, R, t, K, to_normalized=lambda u: (np.asarray(u, float).reshape(-1, 2) - c_px) / f_px,
+                        to_pixels=lambda m: np.asarray(m, float).reshape(-1, 2) * f_px + c_px)
+
+
+def test_stereo_error_check_finds_what_the_error_model_misses():
+    """Two C-arms at 90 degrees (1 m from the isocentre, f = 5000 px: 0.2 mm per px there).
+    Marker A's centres err 5x their stated sd_px_smooth (a bias the smoother cannot average
+    away), B's as stated, C's as stated but seen in only 6 frames: the ray gaps give A a
+    scale near 5 (its z RMS), B none to speak of, C none (too few points)."""
+    from bsipipe.imaging.smooth import stereo_error_check
+    from bsipipe.imaging.triangulate import triangulate
+    a = _pinhole("cam1", np.eye(3), np.array([0.0, 0.0, -1000.0]))
+    rb = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])      # looks along +x
+    b = _pinhole("cam2", rb, np.array([-1000.0, 0.0, 0.0]))
+    rng = np.random.default_rng(4)
+    rows2, rows3 = [], []
+    sd_stated = 0.02
+    for m, n, factor in (("A", 200, 5.0), ("B", 200, 1.0), ("C", 6, 1.0)):
+        X = rng.normal(0, 10.0, (n, 3))
+        uv = {}
+        for v in (a, b):
+            Xc = X @ v.R.T + v.t
+            uv[v.name] = v.to_pixels(Xc[:, :2] / Xc[:, 2:3]) + rng.normal(0, factor * sd_stated, (n, 2))
+        r = triangulate((a, b), uv["cam1"], uv["cam2"], refine=False)
+        for k in range(n):
+            rows3.append({"frame": k, "marker": m, "n_views": 2, "x_mm": r["X_mm"][k, 0], "y_mm": r["X_mm"][k, 1],
+                          "z_mm": r["X_mm"][k, 2], "ray_gap_signed_mm": r["ray_gap_signed_mm"][k],
+                          "ray_gap_mm_raw": r["ray_gap_mm"][k]})
+            for v in ("cam1", "cam2"):
+                rows2.append({"view": v, "frame": k, "marker": m, "sd_px": sd_stated, "sd_px_smooth": sd_stated})
+    out = stereo_error_check(pd.DataFrame(rows3), pd.DataFrame(rows2), (a, b), ("cam1", "cam2"))
+    print({m: (r["n_points"], round(r["z_rms_smooth"], 2), round(r["scale_smooth"], 2)) for m, r in out.items()})
+    assert out["A"]["scale_smooth"] == pytest.approx(5.0, rel=0.15)
+    assert out["A"]["scale_raw"] == pytest.approx(5.0, rel=0.15)
+    assert 1.0 <= out["B"]["scale_smooth"] < 1.2
+    assert out["C"]["n_points"] == 6 and out["C"]["scale_smooth"] == 1.0

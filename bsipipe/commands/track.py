@@ -377,6 +377,31 @@ def _smooth(table: pd.DataFrame) -> tuple[pd.DataFrame, dict]:
         "tracks": [m.to_dict() for m in models]}
 
 
+def _stereo_check(table: pd.DataFrame, points3d: pd.DataFrame, vpair, pair) -> dict:
+    """:func:`bsipipe.imaging.smooth.stereo_error_check` on the smoothed centres, and each
+    marker's ``sd_px`` and ``sd_px_smooth`` scaled (in ``table``, both views) by what the ray
+    gaps show the error model misses; the ``stereo_check`` section of ``track.json``."""
+    from ..imaging.smooth import stereo_error_check
+    per = stereo_error_check(points3d, table, vpair, pair)
+    before = {c: float(table[c].median()) for c in ("sd_px", "sd_px_smooth")}
+    for m, r in per.items():
+        sel = (table["marker"] == m) & table["view"].isin(pair)
+        table.loc[sel, "sd_px"] *= r["scale_raw"]
+        table.loc[sel, "sd_px_smooth"] *= r["scale_smooth"]
+    scaled = {m: round(r["scale_smooth"], 2) for m, r in per.items() if r["scale_smooth"] > 1.0}
+    zs = [r["z_rms_smooth"] for r in per.values() if r["n_points"]]
+    if per:
+        log.info("track: stereo check of the error model: ray-gap z RMS of the smoothed centres %.2f-%.2f over %d "
+                 "markers; sd scaled where above 1 (%s)", min(zs), max(zs), len(zs),
+                 ", ".join(f"{m} x{k:g}" for m, k in scaled.items()) or "none")
+    return {"rule": "per marker with >= 10 two-view points: z = signed ray gap / its sd from both views' sd_px "
+                    "(sd x depth / focal length); sd_px and sd_px_smooth of both views scaled by max(1, z RMS)",
+            "median_sd_px_before": before["sd_px"], "median_sd_px_smooth_before": before["sd_px_smooth"],
+            "median_sd_px_after": float(table["sd_px"].median()),
+            "median_sd_px_smooth_after": float(table["sd_px_smooth"].median()),
+            "markers": per}
+
+
 def decode_workers() -> int:
     """Threads that decode a folder of frames for ``track``: one more than the cores, at most 4.
     Decoding a 1024 x 1024 PNG takes longer than tracking it; with the tracker on one core,
@@ -602,6 +627,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
             smoothing["ray_gap_rms_mm"] = (float(np.sqrt(np.mean(points3d.loc[two, "ray_gap_mm"] ** 2)))
                                            if two.any() else None)
             smoothing["ray_gap_rms_mm_raw"] = loop_dict["final"]["ray_gap_rms_mm"]
+            smoothing["stereo_check"] = _stereo_check(table, points3d, vpair, pair)
     if points3d is not None:
         if cfg.lowpass_hz is not None:
             rate = cfg.fps or (1.0 / np.nanmedian(np.diff(data.ta)) if time_unit == "s" else None)

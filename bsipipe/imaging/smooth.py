@@ -397,3 +397,57 @@ def smooth_tracks(table: pd.DataFrame, *, log_q_grid=LOG_Q_GRID, scale_grid=SCAL
     for c, v in new.items():
         out[c] = v
     return out, models
+
+
+def stereo_error_check(points3d: pd.DataFrame, table: pd.DataFrame, views, pair: tuple[str, str], *,
+                       min_points: int = 10) -> dict:
+    """Check the 2-D error model against the stereo ray gaps, per marker.
+
+    Two rays through a marker's centres in two views miss each other by the part of each
+    view's centre error that is perpendicular to the epipolar plane, times the view's
+    millimetres per pixel at the marker (its depth over the focal length).  With per-axis
+    errors of ``sd`` px the signed gap's standard deviation is
+
+    .. math::  \\sigma_g = \\sqrt{(s_a\\,Z_a/f_a)^2 + (s_b\\,Z_b/f_b)^2}
+
+    so ``z = gap / sigma_g`` is N(0, 1) when the error model is right.  Its RMS over a
+    marker's two-view points (``ray_gap_signed_mm`` with ``sd_px_smooth``; ``ray_gap_mm_raw``
+    with ``sd_px``) is what the model misses: an error that the smoother cannot average away
+    (a bias that changes slowly, as the fit's mismatch to a large bead's shape, or residual
+    calibration error), or a noise model too optimistic.  The scale returned for each marker
+    with ``min_points`` two-view points is ``max(1, z RMS)``: applied to both views' ``sd``,
+    the model then accounts for what the two views disagree by (never made tighter).
+
+    ``views`` are the pair's :class:`~bsipipe.imaging.triangulate.ViewGeometry` (``R``,
+    ``t``, ``K``) in ``pair`` order; ``table`` the 2-D table with ``sd_px`` and
+    ``sd_px_smooth``; ``points3d`` the triangulated smoothed centres with ``ray_gap_mm_raw``.
+    Returns ``{marker: {n_points, z_rms_raw, z_rms_smooth, scale_raw, scale_smooth}}``.
+    """
+    two = points3d[points3d["n_views"] == 2]
+    if two.empty:
+        return {}
+    X = two[["x_mm", "y_mm", "z_mm"]].to_numpy(float)
+    idx = pd.MultiIndex.from_frame(two[["frame", "marker"]])
+    var_s = np.zeros(len(two))
+    var_r = np.zeros(len(two))
+    for name, g in zip(pair, views):
+        mm_per_px = (X @ np.asarray(g.R).T + np.asarray(g.t))[:, 2] / float(np.asarray(g.K)[0, 0])
+        s = table[table["view"] == name].set_index(["frame", "marker"])
+        var_s += (s["sd_px_smooth"].reindex(idx).to_numpy(float) * mm_per_px) ** 2
+        var_r += (s["sd_px"].reindex(idx).to_numpy(float) * mm_per_px) ** 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = pd.DataFrame({"marker": two["marker"].to_numpy(),
+                          "smooth": two["ray_gap_signed_mm"].to_numpy(float) / np.sqrt(var_s),
+                          "raw": two["ray_gap_mm_raw"].to_numpy(float) / np.sqrt(var_r)})
+    out = {}
+    for m, g in z.groupby("marker", sort=False):
+        zs, zr = g["smooth"].to_numpy(), g["raw"].to_numpy()
+        zs, zr = zs[np.isfinite(zs)], zr[np.isfinite(zr)]
+        n = int(min(len(zs), len(zr)))
+        rs = float(np.sqrt(np.mean(zs ** 2))) if len(zs) else float("nan")
+        rr = float(np.sqrt(np.mean(zr ** 2))) if len(zr) else float("nan")
+        enough = n >= min_points
+        out[str(m)] = {"n_points": n, "z_rms_raw": rr, "z_rms_smooth": rs,
+                       "scale_raw": max(1.0, rr) if enough and np.isfinite(rr) else 1.0,
+                       "scale_smooth": max(1.0, rs) if enough and np.isfinite(rs) else 1.0}
+    return out

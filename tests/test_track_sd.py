@@ -1,0 +1,59 @@
+"""Each centre's stated error (``sd_px``, ``sd_px_smooth``) against the twin's truth: the
+command's stereo check of the error model (:func:`bsipipe.imaging.smooth.stereo_error_check`).
+
+The twin's 1 mm reference beads and the indentor's markers are found with a high SNR, so
+the Cramer-Rao error model gives them tiny sds, but their centres carry errors the smoother
+cannot average away (the Gaussian fit's mismatch to a large bead's image changes slowly):
+before the check, their smoothed sds were 8-10 times too small (z RMS of the smoothed
+centres' errors 5.8-7.2 on six twins, 0.94-1.81 after)."""
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+from click.testing import CliRunner
+
+from bsipipe.cli import cli
+
+pytestmark = pytest.mark.slow
+
+TWIN = {"seed": 0, "calibration": {"views": 0, "stereo_views": 0},
+        "sequence": {"n_frames": 60}}
+
+
+@pytest.fixture(scope="module")
+def tracked(tmp_path_factory):
+    from test_track_twin import truth_calibration
+    root = tmp_path_factory.mktemp("track_sd")
+    (root / "synth.yaml").write_text(yaml.safe_dump(TWIN))
+    r = CliRunner().invoke(cli, ["-q", "synth", str(root / "synth.yaml"), "-o", str(root / "synth")])
+    assert r.exit_code == 0, r.output
+    s = root / "synth"
+    (root / "calibration.json").write_text(json.dumps(truth_calibration(json.loads((s / "truth.json").read_text()))))
+    r = CliRunner().invoke(cli, ["-q", "track", "--view", f"cam1={s / 'sequence/cam1'}", "--view",
+                                 f"cam2={s / 'sequence/cam2'}", "--seeds", str(s / "seeds.csv"), "--calibration",
+                                 str(root / "calibration.json"), "--fps", "2", "-o", str(root / "track")])
+    assert r.exit_code == 0, r.output
+    return root
+
+
+def test_stated_errors_match_the_truth(tracked):
+    tr = pd.read_csv(tracked / "synth/truth_markers.csv", dtype={"marker": str})
+    t2 = pd.read_csv(tracked / "track/markers2d.csv", dtype={"marker": str})
+    m = tr.merge(t2, on=["view", "frame", "marker"], suffixes=("_t", ""))
+    m = m[m["found"].astype(bool) & m["visible"].astype(bool)]
+
+    def z_rms(x, y, sd):
+        z = np.r_[(m[x] - m["x_px_t"]) / m[sd], (m[y] - m["y_px_t"]) / m[sd]]
+        return float(np.sqrt(np.mean(z[np.isfinite(z)] ** 2)))
+
+    zs, zr = z_rms("x_px_smooth", "y_px_smooth", "sd_px_smooth"), z_rms("x_px", "y_px", "sd_px")
+    sc = json.loads((tracked / "track/track.json").read_text())["smoothing"]["stereo_check"]
+    scales = {k: round(v["scale_smooth"], 1) for k, v in sc["markers"].items()}
+    print(f"z RMS of the errors over their stated sd: raw {zr:.2f}, smoothed {zs:.2f}; scales {scales}")
+    assert 0.6 < zr < 1.6 and 0.6 < zs < 1.6
+    # the references' smoothed sds were the ones scaled up, by several times
+    assert all(scales[r] > 3 for r in ("R1", "R2", "R3", "R4"))
+    assert sc["median_sd_px_smooth_after"] >= sc["median_sd_px_smooth_before"]
