@@ -322,8 +322,9 @@ def track_view(frames: Iterable, seeds: pd.DataFrame | dict | None, diameter_px:
         match, d2 = _assign(live, pred, gates, cxy, compat, miss_cost=1.0)
         weak = np.zeros(len(live), bool)
         if settings.second_look_k_sigma is not None and k > 0:
-            cand, match, d2, weak = _second_look(f, img, live, pred, np.minimum(gates, S["second_look_radius_px"]), cand, match, d2,
-                                                 diameter_px, polarity, detection, fov, settings)
+            near = np.minimum(gates, S["second_look_radius_px"])
+            cand, match, d2, weak = _second_look(f, img, live, pred, near, cand, match, d2, diameter_px, polarity,
+                                                 detection, fov, settings)
         amb = _ambiguous_pairs(match, d2, S["ambiguity_px"] ** 2)
         for i, j in amb:
             events.append({"view": view, "frame": f, "marker": live[i].name, "kind": "ambiguous",
@@ -393,8 +394,8 @@ def _second_look(frame: int, img, live: list[_Marker], pred, gates, cand: dict, 
     pass's, then the new ones), ``match`` and ``d2`` over them, and which markers the second
     look found."""
     n_x = max(settings.max_extrapolation_frames, 1)
-    miss = np.flatnonzero((match < 0) & np.array([np.isfinite(m.amp_median) and frame - m.frame <= n_x for m in live],
-                                                 bool))
+    recent = np.array([np.isfinite(m.amp_median) and frame - m.frame <= n_x for m in live], bool)
+    miss = np.flatnonzero((match < 0) & recent)
     weak = np.zeros(len(live), bool)
     if len(miss) == 0 or settings.second_look_k_sigma >= detection.window_k_sigma:
         return cand, match, d2, weak
