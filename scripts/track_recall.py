@@ -5,8 +5,9 @@
 Each TRIAL_DIR is a study trial (``synth/`` with ``truth_markers.csv``, ``track/`` with
 ``markers2d.csv`` and ``markers3d.csv``).  Printed per trial: the visible positions (truth
 ``visible``) found within 1 px of the truth, the positions more than 1 px off their marker
-(on another marker: an identity swap; elsewhere: clutter), the two-view 3-D points, and the
-markers that miss the most.  ``--mp4 WORKDIR``: the trial's frames are first written to MP4
+(on another marker: an identity swap; elsewhere: clutter), the two-view 3-D points, the
+RMS of each position's error over its stated sd (``sd_px``, ``sd_px_smooth``; 1 when the
+stated errors are honest), and the markers that miss the most.  ``--mp4 WORKDIR``: the trial's frames are first written to MP4
 (OpenCV ``mp4v`` at its default quality, the trial's frame rate) in ``WORKDIR/<trial>`` and
 tracked there with the trial's own track config: the same score on compressed video.
 """
@@ -25,7 +26,8 @@ import pandas as pd
 def score(synth_dir: Path, track_dir: Path) -> dict:
     tr = pd.read_csv(synth_dir / "truth_markers.csv", dtype={"marker": str, "view": str})
     tk = pd.read_csv(track_dir / "markers2d.csv", dtype={"marker": str, "view": str})
-    m = tr.merge(tk[["view", "frame", "marker", "x_px", "y_px", "found"]], on=["view", "frame", "marker"],
+    extra = [c for c in ("sd_px", "x_px_smooth", "y_px_smooth", "sd_px_smooth") if c in tk]
+    m = tr.merge(tk[["view", "frame", "marker", "x_px", "y_px", "found", *extra]], on=["view", "frame", "marker"],
                  suffixes=("_t", ""), how="left")
     m["found"] = m["found"].astype("boolean").fillna(False).astype(bool)
     m["err"] = np.hypot(m["x_px"] - m["x_px_t"], m["y_px"] - m["y_px_t"])
@@ -39,7 +41,17 @@ def score(synth_dir: Path, track_dir: Path) -> dict:
     p3 = pd.read_csv(track_dir / "markers3d.csv") if (track_dir / "markers3d.csv").exists() else None
     per = (m.assign(vis=vis, hit=hit).groupby(["view", "marker"])[["vis", "hit"]].sum()
            .assign(missed=lambda d: d["vis"] - d["hit"]).sort_values("missed", ascending=False))
+    # the stated errors against the truth: z = error / sd per axis, RMS over the visible found positions
+    z_rms = {}
+    for name, (x, y, sd) in {"raw": ("x_px", "y_px", "sd_px"),
+                             "smoothed": ("x_px_smooth", "y_px_smooth", "sd_px_smooth")}.items():
+        if sd in m:
+            f = m[vis & m["found"]]
+            z = np.r_[(f[x] - f["x_px_t"]) / f[sd], (f[y] - f["y_px_t"]) / f[sd]]
+            z = z[np.isfinite(z)]
+            z_rms[name] = float(np.sqrt(np.mean(z ** 2))) if len(z) else float("nan")
     return {"visible": int(vis.sum()), "found_1px": int(hit.sum()), "off_1px": int(len(off)), "swaps": swap,
+            "z_rms": z_rms,
             "clutter": int(len(off)) - swap,
             "two_view": None if p3 is None else int((p3["n_views"] == 2).sum()),
             "worst": [(v, mk, int(r.hit), int(r.vis)) for (v, mk), r in per.head(3).iterrows() if r.missed > 0]}
@@ -86,7 +98,8 @@ if __name__ == "__main__":
             total[k] += s[k]
         print(f"{d}{' (MP4)' if mp4 else ''}: found within 1 px {s['found_1px']}/{s['visible']} "
               f"({100 * s['found_1px'] / s['visible']:.2f} %); off > 1 px {s['off_1px']} (swaps {s['swaps']}, "
-              f"clutter {s['clutter']}); two-view points {s['two_view']}; most missed "
+              f"clutter {s['clutter']}); two-view points {s['two_view']}; error / stated sd, z RMS "
+              + (", ".join(f"{k} {v:.2f}" for k, v in s["z_rms"].items()) or "n/a") + "; most missed "
               + ", ".join(f"{v} {mk} {h}/{n}" for v, mk, h, n in s["worst"]))
     if total["visible"] and len(args) > 1:
         print(f"all: found within 1 px {total['found_1px']}/{total['visible']} "

@@ -5,7 +5,7 @@ The twin's 1 mm reference beads and the indentor's markers are found with a high
 the Cramer-Rao error model gives them tiny sds, but their centres carry errors the smoother
 cannot average away (the Gaussian fit's mismatch to a large bead's image changes slowly):
 before the check, their smoothed sds were 8-10 times too small (z RMS of the smoothed
-centres' errors 5.8-7.2 on six twins, 0.94-1.81 after)."""
+centres' errors 6.0-7.3 on six twins, 0.94-1.81 after)."""
 
 import json
 
