@@ -282,7 +282,12 @@ def track(config, out, **opts) -> None:
         smo = np.median([t["smooth_sd_px"] for t in sm["tracks"]])
         gap = (f"; ray gap RMS {sm['ray_gap_rms_mm']:.4f} mm (raw {sm['ray_gap_rms_mm_raw']:.4f})"
                if sm.get("ray_gap_rms_mm") is not None else "")
-        click.echo(f"smoothed {len(sm['tracks'])} tracks: median centre sd {raw:.3f} -> {smo:.3f} px{gap}")
+        sc = (sm.get("stereo_check") or {}).get("markers") or {}
+        up = [m for m, r in sc.items() if r["scale_smooth"] > 1.0]
+        chk = (f"; stereo check: sd scaled up for {len(up)} of {len(sc)} markers "
+               f"(up to x{max(r['scale_smooth'] for r in sc.values()):.3g})" if up else
+               ("; stereo check: sd consistent with the ray gaps" if sc else ""))
+        click.echo(f"smoothed {len(sm['tracks'])} tracks: median centre sd {raw:.3f} -> {smo:.3f} px{gap}{chk}")
     click.echo(f"wrote {out}/track.json")
 
 

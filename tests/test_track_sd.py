@@ -57,3 +57,9 @@ def test_stated_errors_match_the_truth(tracked):
     # the references' smoothed sds were the ones scaled up, by several times
     assert all(scales[r] > 3 for r in ("R1", "R2", "R3", "R4"))
     assert sc["median_sd_px_smooth_after"] >= sc["median_sd_px_smooth_before"]
+    # the per-track summaries carry the scaled sds (what markers2d.csv holds)
+    tracks = json.loads((tracked / "track/track.json").read_text())["smoothing"]["tracks"]
+    r1 = [t for t in tracks if t["marker"] == "R1" and t["view"] == "cam1"][0]
+    t2r = t2[(t2["marker"] == "R1") & (t2["view"] == "cam1")]
+    assert r1["stereo_scale_smooth"] == pytest.approx(sc["markers"]["R1"]["scale_smooth"])
+    assert r1["smooth_sd_px"] == pytest.approx(float(t2r["sd_px_smooth"].median()), rel=0.05)

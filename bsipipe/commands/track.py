@@ -377,10 +377,12 @@ def _smooth(table: pd.DataFrame) -> tuple[pd.DataFrame, dict]:
         "tracks": [m.to_dict() for m in models]}
 
 
-def _stereo_check(table: pd.DataFrame, points3d: pd.DataFrame, vpair, pair) -> dict:
+def _stereo_check(table: pd.DataFrame, points3d: pd.DataFrame, vpair, pair, tracks: list[dict]) -> dict:
     """:func:`bsipipe.imaging.smooth.stereo_error_check` on the smoothed centres, and each
     marker's ``sd_px`` and ``sd_px_smooth`` scaled (in ``table``, both views) by what the ray
-    gaps show the error model misses; the ``stereo_check`` section of ``track.json``."""
+    gaps show the error model misses, as are the medians in its ``tracks`` entries (the
+    ``smoothing`` section's, which gain ``stereo_scale_raw`` / ``_smooth``); returns the
+    ``stereo_check`` section of ``track.json``."""
     from ..imaging.smooth import stereo_error_check
     per = stereo_error_check(points3d, table, vpair, pair)
     before = {c: float(table[c].median()) for c in ("sd_px", "sd_px_smooth")}
@@ -388,6 +390,12 @@ def _stereo_check(table: pd.DataFrame, points3d: pd.DataFrame, vpair, pair) -> d
         sel = (table["marker"] == m) & table["view"].isin(pair)
         table.loc[sel, "sd_px"] *= r["scale_raw"]
         table.loc[sel, "sd_px_smooth"] *= r["scale_smooth"]
+    for t in tracks:
+        r = per.get(str(t["marker"])) if t["view"] in pair else None
+        if r is not None:
+            t["raw_sd_px"] *= r["scale_raw"]
+            t["smooth_sd_px"] *= r["scale_smooth"]
+            t["stereo_scale_raw"], t["stereo_scale_smooth"] = r["scale_raw"], r["scale_smooth"]
     scaled = {m: round(r["scale_smooth"], 2) for m, r in per.items() if r["scale_smooth"] > 1.0}
     zs = [r["z_rms_smooth"] for r in per.values() if r["n_points"]]
     if per:
@@ -627,7 +635,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
             smoothing["ray_gap_rms_mm"] = (float(np.sqrt(np.mean(points3d.loc[two, "ray_gap_mm"] ** 2)))
                                            if two.any() else None)
             smoothing["ray_gap_rms_mm_raw"] = loop_dict["final"]["ray_gap_rms_mm"]
-            smoothing["stereo_check"] = _stereo_check(table, points3d, vpair, pair)
+            smoothing["stereo_check"] = _stereo_check(table, points3d, vpair, pair, smoothing["tracks"])
     if points3d is not None:
         if cfg.lowpass_hz is not None:
             rate = cfg.fps or (1.0 / np.nanmedian(np.diff(data.ta)) if time_unit == "s" else None)
