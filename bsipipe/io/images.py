@@ -197,13 +197,9 @@ _SERIES_CACHE: dict = {}
 
 def _read_series(files: list[Path]) -> _Series | None:
     """:func:`_dicom_series` without the cache."""
-    import pydicom
     heads = []
     for f in files:
-        try:
-            ds = pydicom.dcmread(str(f), stop_before_pixels=True)
-        except Exception as e:  # a broken header
-            raise InputError(f"cannot read DICOM: {e}", path=f) from None
+        ds = _dicom_dataset(f, pixels=False)
         if int(getattr(ds, "NumberOfFrames", 1) or 1) > 1:
             return None                     # multi-frame files: each holds its own clip
         heads.append(ds)
@@ -436,10 +432,12 @@ def _tiff_page_array(page, path: Path, k: int | None) -> np.ndarray:
     return a
 
 
-def _dicom_dataset(path: Path):
+def _dicom_dataset(path: Path, *, pixels: bool = True):
+    """The DICOM file's dataset (``pixels=False``: its header only); a file pydicom cannot
+    read is an InputError naming it."""
     import pydicom
     try:
-        return pydicom.dcmread(str(path))
+        return pydicom.dcmread(str(path), stop_before_pixels=not pixels)
     except Exception as e:  # pydicom raises InvalidDicomError, OSError, ValueError...
         raise InputError(f"cannot read DICOM: {e}", path=path) from None
 
@@ -687,7 +685,7 @@ _DICOM_LOSSY_SYNTAXES = ("1.2.840.10008.1.2.4.50", "1.2.840.10008.1.2.4.51", "1.
 
 def lossy_compression(source: str | os.PathLike) -> str | None:
     """How the frames of a source were lossily compressed, in words (``"JPEG files"``,
-    ``"video codec mp4v"``, ``"DICOM transfer syntax 1.2.840.10008.1.2.4.50"``), or None for
+    ``"video codec FMP4"`` (OpenCV's mp4v), ``"DICOM transfer syntax 1.2.840.10008.1.2.4.50"``), or None for
     lossless sources (PNG, TIFF, BMP, a lossless or raw video codec, uncompressed DICOM).
     A lossy codec removes the fine-grained pixel noise the detector measures its threshold
     and each marker's SNR from, and smears small beads.  Only the first file is examined (a
@@ -712,11 +710,7 @@ def lossy_compression(source: str | os.PathLike) -> str | None:
         shown = fourcc.strip("\x00 ") or f"0x{code:08x}"
         return f"video codec {shown}"
     if _is_dicom(f):
-        import pydicom
-        try:
-            ds = pydicom.dcmread(str(f), stop_before_pixels=True)
-        except Exception as e:  # pydicom raises InvalidDicomError, OSError, ValueError...
-            raise InputError(f"cannot read DICOM: {e}", path=f) from None
+        ds = _dicom_dataset(f, pixels=False)
         ts = str(getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", "") or "")
         if ts in _DICOM_LOSSY_SYNTAXES or str(getattr(ds, "LossyImageCompression", "")).strip() == "01":
             return f"DICOM transfer syntax {ts}" if ts else "DICOM marked lossy (LossyImageCompression 01)"
@@ -745,11 +739,7 @@ def count_frames(source: str | os.PathLike) -> int:
                 n += len(tif.pages)
                 errors.check(f)
         elif _is_dicom(f):
-            import pydicom
-            try:
-                ds = pydicom.dcmread(str(f), stop_before_pixels=True)
-            except Exception as e:  # broken header
-                raise InputError(f"cannot read DICOM: {e}", path=f) from None
+            ds = _dicom_dataset(f, pixels=False)
             n += int(getattr(ds, "NumberOfFrames", 1) or 1)
         else:
             n += 1
