@@ -687,3 +687,25 @@ def test_window_candidates_do_not_depend_on_the_other_windows():
         found[2] += int((np.hypot(*(b - bead[0]).T) < 1).any())
     print(f"bead found in {found[1]} of 12 frames with its window alone, {found[2]} beside another window")
     assert found[1] == found[2] >= 4
+
+
+def test_detect_arrays_skip_leaves_the_other_markers_as_they_were():
+    """``skip`` (a tracker's sweep for new markers) drops the candidates inside the given
+    circles before they are measured; every other marker comes out bit for bit as without
+    ``skip`` (the skipped ones are still masked out of their neighbours' fits)."""
+    size = 256
+    rng = np.random.default_rng(5)
+    pts = bead_grid(4, size, rng)
+    pts[1] = pts[0] + [5.0, 0.5]                   # a close pair: each masked from the other's fit
+    img = render_beads(pts, 4.0, size, rng)
+    full = D.detect_arrays(img, 4.0, "dark", "none")
+    xy = np.column_stack([full["x_px"], full["y_px"]])
+    assert len(xy) == len(pts)
+    near = [int(np.argmin(np.hypot(*(xy - p).T))) for p in (pts[0], pts[-1])]
+    held = xy[near]                                # one of the close pair, one far from it
+    part = D.detect_arrays(img, 4.0, "dark", "none", skip=(held, np.full(2, 2.0)))
+    pxy = np.column_stack([part["x_px"], part["y_px"]])
+    assert len(pxy) == len(xy) - 2
+    keep = ~(((xy[:, None, :] - held[None, :, :]) ** 2).sum(-1) <= 4.0).any(axis=1)
+    for c in D.COLUMNS:
+        np.testing.assert_array_equal(part[c], full[c][keep])

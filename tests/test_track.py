@@ -117,8 +117,9 @@ def test_occluded_marker_found_again():
 
 
 def test_automatic_mode_names_tracks():
-    """Without seeds every frame is searched whole and detections are linked; the three
-    beads become three tracks M1..M3 that follow them."""
+    """Without seeds the whole frame is searched for new markers (here in frames 0 and 11,
+    the last) and each track in its window between; the three beads become three tracks
+    M1..M3 that follow them."""
     frames, truth = crossing_sequence(n=12)
     res = track_view(frames, None, 4.0, "dark", roi="none")
     names = sorted(res.table["marker"].unique())
@@ -127,6 +128,37 @@ def test_automatic_mode_names_tracks():
     for j in range(3):
         d = np.hypot(last["x_px"] - truth[5, j, 0], last["y_px"] - truth[5, j, 1])
         assert d.min() < 0.5
+
+
+def test_automatic_mode_follows_a_new_marker_back_to_where_it_appeared():
+    """Without seeds, the whole frame is searched only every ``sweep_every_frames`` frames
+    (and in the last); a marker that comes into view between two sweeps is found by the
+    next one and followed backwards through the frames since the previous sweep, so its
+    track starts where it appeared, with the positions a sweep of every frame gives; a
+    marker that stays in view for fewer frames than the sweeps are apart, between two of
+    them, is the price."""
+    size, n, appear = 160, 24, 7
+    rng = np.random.default_rng(3)
+    t = np.arange(n, dtype=float)
+    A = np.column_stack([50 + 0.5 * t, 60 + 0 * t])
+    N = np.column_stack([100 + 0 * t, 40 + 1.5 * t])          # comes into view at frame 7
+    field = RayField(bead_camera(size))
+    frames = [render_beads(np.vstack([A[i], N[i]]), 4.0, size, rng, field=field, skip=(1,) if i < appear else ())
+              for i in range(n)]
+    tabs = {}
+    for every in (1, 10):
+        res = track_view(frames, None, 4.0, "dark", roi="none", settings=TrackSettings(sweep_every_frames=every))
+        tab = res.table[res.table["found"]]
+        assert sorted(tab["marker"].unique()) == ["M1", "M2"]
+        new = tab[tab["marker"] == "M2"].set_index("frame")
+        assert new.index.min() == appear and len(new) == n - appear
+        e = np.hypot(new["x_px"] - N[new.index, 0], new["y_px"] - N[new.index, 1])
+        assert e.max() < 0.3
+        tabs[every] = new
+    # frames 7-9: followed back from the sweep of frame 10 in search windows, against the
+    # whole-frame detections of a sweep in every frame
+    d = np.hypot(tabs[1]["x_px"] - tabs[10]["x_px"], tabs[1]["y_px"] - tabs[10]["y_px"])
+    assert d.max() < 0.02
 
 
 # --- linking against trackpy on real microscopy --------------------------------------------------------

@@ -73,6 +73,10 @@ class TrackingConfig(StrictModel):
     max_extrapolation_frames: int = Field(3, ge=0, description="a hidden marker moves on at its last velocity "
                                           "for at most this many frames")
     min_track_frames: int = Field(3, ge=1, description="automatic mode: shorter tracks are dropped")
+    sweep_every_frames: int = Field(20, ge=1, description="automatic mode: the whole frame is searched for new "
+                                    "markers in the first frame, every this many frames and the last (a new one "
+                                    "is followed back to where it appeared); in between each track is searched "
+                                    "for in its own window")
     second_look_k_sigma: PositiveFloat | None = Field(
         2.5, description="seeded mode: a marker nothing matched is looked for again in its gate with this window "
                          "threshold (robust sd), taken only if it passes min_snr and has the marker's own amplitude "

@@ -1634,11 +1634,15 @@ def _unclipped(img: np.ndarray) -> np.ndarray | None:
 
 def detect_arrays(frame: np.ndarray, diameter_px: float, polarity: Polarity = "dark",
                   roi: FieldOfView | np.ndarray | str | None = None,
-                  settings: DetectionSettings = DetectionSettings(), *, dark: bool | None = None) -> dict:
+                  settings: DetectionSettings = DetectionSettings(), *, dark: bool | None = None,
+                  skip: tuple | None = None) -> dict:
     """:func:`detect_markers` as a dict of :data:`COLUMNS` arrays, sorted by y then x (the
     per-frame path of automatic tracking: no DataFrame per frame).  ``dark``: leave out
     :func:`dark_objects` (default: for dark markers when ``roi`` is None or ``"auto"``; a
     tracker that finds the field of view once passes it as ``roi`` with ``dark=True``).
+    ``skip``: ``(centres (n, 2), radii (n,))``, circles whose candidates are not measured nor
+    returned (a tracker's sweep for new markers skips the ones it already holds; they are
+    still masked out of their neighbours' fits).
 
     Whole-frame work is the smoothed top-hat (:func:`smoothed_tophat`), one comparison with
     the threshold, and Immerkaer's filter and the statistics on a sampling grid
@@ -1686,7 +1690,18 @@ def detect_arrays(frame: np.ndarray, diameter_px: float, polarity: Polarity = "d
     if use is not None and not use.any():
         use = inside1
     noise = _noise_from_highpass(hp if use is None else hp[use])
-    m = _finish(img, xs, ys, area, np.full(len(xs), noise), diameter_px, polarity, st, region)
+    neighbours = None
+    if skip is not None and len(skip[0]):
+        c = np.asarray(skip[0], float).reshape(-1, 2)
+        r = np.broadcast_to(np.asarray(skip[1], float), (len(c),))
+        d2 = (xs[:, None] - c[None, :, 0]) ** 2 + (ys[:, None] - c[None, :, 1]) ** 2
+        new = ~(d2 <= r[None, :] ** 2).any(axis=1)
+        if not new.all():
+            neighbours = np.column_stack([xs, ys]).astype(float)
+            xs, ys, area = xs[new], ys[new], area[new]
+            if len(xs) == 0:
+                return {c: np.zeros(0) for c in COLUMNS}
+    m = _finish(img, xs, ys, area, np.full(len(xs), noise), diameter_px, polarity, st, region, neighbours)
     order = np.lexsort((m["x_px"], m["y_px"]))
     return {c: m[c][order] for c in COLUMNS}
 

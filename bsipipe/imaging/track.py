@@ -26,16 +26,21 @@ Every change is reported as an event (``events``: view, frame, marker, kind, det
 - ``partial``: the marker's amplitude fell below ``partial_fraction`` of its median (it is
   partly hidden, e.g. entering the shadow of an instrument): its centre may be biased.
 
-Without seeds every frame is searched whole (:func:`~bsipipe.imaging.detect.detect_arrays`,
-the intensifier's field found once, in the first frame, as with seeds) and the detections are
-linked (:func:`link_detections`): every detection that no track takes starts a new track; a
-track not seen for more than ``memory`` frames ends.
+Without seeds (:func:`_track_swept`) the whole frame is searched
+(:func:`~bsipipe.imaging.detect.detect_arrays`, the intensifier's field found once, in the
+first frame, as with seeds) in the first frame, every ``sweep_every_frames``-th and the last;
+a detection that no track holds starts a new track, which is first followed backwards through
+the frames since the previous sweep, then forwards with the others.  In between, every track
+is searched for in its own window exactly as a seeded marker is (the per-frame work is that of
+the seeded mode, not a whole-frame detection).  A track not seen for more than ``memory``
+frames ends, a new one not yet seen in ``min_track_frames`` frames at its first miss.  With
+trackpy parity every frame is detected whole as ``trackpy.locate`` does and the detections are
+linked (:func:`link_detections`).
 """
 
 from __future__ import annotations
 
 import bisect
-import itertools
 import logging
 import math
 from dataclasses import dataclass, field
@@ -75,7 +80,11 @@ class TrackSettings:
     width a candidate must lie within to be taken for it (an instrument's edge or a larger
     bead is not the marker that vanished behind it); ``memory``:
     frames a track may miss before it ends (automatic mode only; seeded markers are looked
-    for until the end); ``min_track_frames``: shorter automatic tracks are dropped;
+    for until the end; a new automatic track ends at its first miss until it has been
+    found in ``min_track_frames`` frames); ``min_track_frames``: shorter automatic tracks are
+    dropped; ``sweep_every_frames``: automatic mode searches the whole frame for new markers
+    in the first frame, every this many frames and the last, and follows a new one back
+    through the frames since the previous sweep (held in memory: at most this many);
     ``second_look_k_sigma``: a seeded marker that nothing in its gate matched, measured in
     the last ``max_extrapolation_frames`` frames, is looked for once more within
     ``second_look_radius_px`` (default ``max(1, d/4)``) of its prediction with this lower
@@ -103,6 +112,7 @@ class TrackSettings:
     appearance: tuple[float, float, float, float] = (0.3, 2.5, 0.6, 1.6)
     second_look_k_sigma: float | None = 2.5
     second_look_radius_px: float | None = None
+    sweep_every_frames: int = 20
 
     def resolved(self, d: float) -> dict:
         return {"gate_px": self.gate_px if self.gate_px is not None else max(3.0, 1.5 * d),
@@ -305,78 +315,96 @@ def track_view(frames: Iterable, seeds: pd.DataFrame | dict | None, diameter_px:
         if fov is None:
             fov = _resolve_roi(img, roi)
             fov_info = fov.to_dict() if fov is not None else {"found": False}
-        live = [m for m in markers]
         if k == 0:
-            pred = np.array([m.pos for m in live])
-            gates = np.full(len(live), S["seed_radius_px"])
+            pred = np.array([m.pos for m in markers]).reshape(-1, 2)
+            gates = np.full(len(markers), S["seed_radius_px"])
         else:
-            pred = np.array([m.predict(f, settings.motion, settings.max_extrapolation_frames) for m in live])
-            gates = np.array([m.gate(f, S["gate_px"], S["gate_growth_px"], S["max_gate_px"]) for m in live])
-        cand = window_arrays(img, pred, gates, diameter_px, polarity, detection, fov)
-        cxy = np.column_stack([cand["x_px"], cand["y_px"]])
-        camp, csig = cand["amplitude"], cand["sigma_px"]
-        # a marker being found again after a gap must look whole: a partial candidate at the
-        # edge of a gate grown while it was hidden is more likely clutter, or the edge of the
-        # instrument that hid it, than the marker (it is taken a frame later, whole)
-        compat = _looks_like(live, camp, csig, settings, whole=[m.lost_since is not None for m in live])
-        match, d2 = _assign(live, pred, gates, cxy, compat, miss_cost=1.0)
-        weak = np.zeros(len(live), bool)
-        if settings.second_look_k_sigma is not None and k > 0:
-            near = np.minimum(gates, S["second_look_radius_px"])
-            cand, match, d2, weak = _second_look(f, img, live, pred, near, cand, match, d2, diameter_px, polarity,
-                                                 detection, fov, settings)
-        amb = _ambiguous_pairs(match, d2, S["ambiguity_px"] ** 2)
-        for i, j in amb:
-            events.append({"view": view, "frame": f, "marker": live[i].name, "kind": "ambiguous",
-                           "other": live[j].name, "detail": "the two markers could be matched the other way round"})
-            events.append({"view": view, "frame": f, "marker": live[j].name, "kind": "ambiguous",
-                           "other": live[i].name, "detail": "the two markers could be matched the other way round"})
-        nm = len(live)
-        hit = match >= 0
-        val = {}
-        for name in ("x_px", "y_px", "snr", "amplitude", "area_px", "sigma_px"):
-            arr = np.full(nm, np.nan)
-            arr[hit] = cand[name][match[hit]]
-            val[name] = arr
-        found = hit.copy()
-        status = ["lost"] * nm
-        xs, ys, amps, sigs = (val[c].tolist() for c in ("x_px", "y_px", "amplitude", "sigma_px"))
-        for i, m in enumerate(live):
-            j = match[i]
-            if j < 0:
-                if m.lost_since is None:
-                    m.lost_since = f
-                    in_gate = np.flatnonzero(np.isfinite(d2[i])) if d2.size else []
-                    why = ("no marker in the search window" if len(in_gate) == 0 else
-                           "the only candidates were better matches for other markers")
-                    events.append({"view": view, "frame": f, "marker": m.name, "kind": "lost",
-                                   "last_x_px": float(m.pos[0]), "last_y_px": float(m.pos[1]),
-                                   "gate_px": float(gates[i]), "detail": why})
-            else:
-                amp = amps[i]
-                med = m.amp_median
-                partial = bool(np.isfinite(med) and amp < settings.partial_fraction * med)
-                status[i] = "partial" if partial else "weak" if weak[i] else "found"
-                if m.lost_since is not None:
-                    events.append({"view": view, "frame": f, "marker": m.name, "kind": "refound",
-                                   "gap_frames": int(f - m.lost_since),
-                                   "distance_px": float(math.sqrt(d2[i, j])),
-                                   "detail": f"found again after {f - m.lost_since} frame(s)"})
-                    m.lost_since = None
-                if partial:
-                    events.append({"view": view, "frame": f, "marker": m.name, "kind": "partial",
-                                   "amplitude_ratio": amp / med,
-                                   "detail": "amplitude below its median: partly hidden, centre may be biased"})
-                m.update(f, (xs[i], ys[i]), amp if not partial else np.nan, sigs[i] if not partial else np.nan)
-        for name, arr in val.items():
-            cols[name].append(arr)
+            pred, gates = _predictions(markers, f, S, settings)
+        r = _search_frame(img, f, markers, pred, gates, diameter_px, polarity, detection, fov, settings, S,
+                          view, events, second_look=k > 0)
+        for name in ("x_px", "y_px", "snr", "amplitude", "area_px", "sigma_px", "found", "gate_px"):
+            cols[name].append(r[name])
         cols["frame"].append(f)
         cols["time_s"].append(t)
-        cols["found"].append(found)
-        cols["status"].extend(status)
-        cols["pred"].append(np.asarray(pred, float).reshape(nm, 2))
-        cols["gate_px"].append(np.asarray(gates, float))
+        cols["status"].extend(r["status"])
+        cols["pred"].append(r["pred"])
     return TrackResult(_seeded_table(view, names, cols), events, fov_info, {**settings.__dict__, **S})
+
+
+def _predictions(markers: list[_Marker], f: int, S: dict, settings: TrackSettings):
+    """Each marker's predicted position in frame ``f`` and its gate radius."""
+    pred = np.array([m.predict(f, settings.motion, settings.max_extrapolation_frames) for m in markers])
+    gates = np.array([m.gate(f, S["gate_px"], S["gate_growth_px"], S["max_gate_px"]) for m in markers])
+    return pred.reshape(-1, 2), gates
+
+
+def _search_frame(img, f: int, live: list[_Marker], pred, gates, diameter_px: float, polarity: Polarity,
+                  detection: DetectionSettings, fov, settings: TrackSettings, S: dict, view: str,
+                  events: list[dict], *, second_look: bool = True) -> dict:
+    """One frame of the window search: candidates in each marker's gate around its
+    prediction, the global assignment, the second look, and each marker's update and events
+    (appended to ``events``).  Returns per-marker arrays ``x_px, y_px, snr, amplitude,
+    area_px, sigma_px, found, gate_px``, ``pred`` (n, 2) and the ``status`` list."""
+    cand = window_arrays(img, pred, gates, diameter_px, polarity, detection, fov)
+    cxy = np.column_stack([cand["x_px"], cand["y_px"]])
+    camp, csig = cand["amplitude"], cand["sigma_px"]
+    # a marker being found again after a gap must look whole: a partial candidate at the
+    # edge of a gate grown while it was hidden is more likely clutter, or the edge of the
+    # instrument that hid it, than the marker (it is taken a frame later, whole)
+    compat = _looks_like(live, camp, csig, settings, whole=[m.lost_since is not None for m in live])
+    match, d2 = _assign(live, pred, gates, cxy, compat, miss_cost=1.0)
+    weak = np.zeros(len(live), bool)
+    if settings.second_look_k_sigma is not None and second_look:
+        near = np.minimum(gates, S["second_look_radius_px"])
+        cand, match, d2, weak = _second_look(f, img, live, pred, near, cand, match, d2, diameter_px, polarity,
+                                             detection, fov, settings)
+    amb = _ambiguous_pairs(match, d2, S["ambiguity_px"] ** 2)
+    for i, j in amb:
+        events.append({"view": view, "frame": f, "marker": live[i].name, "kind": "ambiguous",
+                       "other": live[j].name, "detail": "the two markers could be matched the other way round"})
+        events.append({"view": view, "frame": f, "marker": live[j].name, "kind": "ambiguous",
+                       "other": live[i].name, "detail": "the two markers could be matched the other way round"})
+    nm = len(live)
+    hit = match >= 0
+    val = {}
+    for name in ("x_px", "y_px", "snr", "amplitude", "area_px", "sigma_px"):
+        arr = np.full(nm, np.nan)
+        arr[hit] = cand[name][match[hit]]
+        val[name] = arr
+    status = ["lost"] * nm
+    xs, ys, amps, sigs = (val[c].tolist() for c in ("x_px", "y_px", "amplitude", "sigma_px"))
+    for i, m in enumerate(live):
+        j = match[i]
+        if j < 0:
+            if m.lost_since is None:
+                m.lost_since = f
+                in_gate = np.flatnonzero(np.isfinite(d2[i])) if d2.size else []
+                why = ("no marker in the search window" if len(in_gate) == 0 else
+                       "the only candidates were better matches for other markers")
+                events.append({"view": view, "frame": f, "marker": m.name, "kind": "lost",
+                               "last_x_px": float(m.pos[0]), "last_y_px": float(m.pos[1]),
+                               "gate_px": float(gates[i]), "detail": why})
+        else:
+            amp = amps[i]
+            med = m.amp_median
+            partial = bool(np.isfinite(med) and amp < settings.partial_fraction * med)
+            status[i] = "partial" if partial else "weak" if weak[i] else "found"
+            if m.lost_since is not None:
+                events.append({"view": view, "frame": f, "marker": m.name, "kind": "refound",
+                               "gap_frames": int(f - m.lost_since),
+                               "distance_px": float(math.sqrt(d2[i, j])),
+                               "detail": f"found again after {f - m.lost_since} frame(s)"})
+                m.lost_since = None
+            if partial:
+                events.append({"view": view, "frame": f, "marker": m.name, "kind": "partial",
+                               "amplitude_ratio": amp / med,
+                               "detail": "amplitude below its median: partly hidden, centre may be biased"})
+            m.update(f, (xs[i], ys[i]), amp if not partial else np.nan, sigs[i] if not partial else np.nan)
+    val["found"] = hit.copy()
+    val["gate_px"] = np.asarray(gates, float)
+    val["pred"] = np.asarray(pred, float).reshape(nm, 2)
+    val["status"] = status
+    return val
 
 
 def _second_look(frame: int, img, live: list[_Marker], pred, gates, cand: dict, match, d2, diameter_px: float,
@@ -478,28 +506,208 @@ def _resolve_roi(img, roi):
     return None
 
 
+def _track_swept(frames, diameter_px, polarity, *, view, fps, roi, detection, settings, on_frame) -> TrackResult:
+    """Automatic mode: whole-frame sweeps for new markers, search windows in between.
+
+    The first frame, then every ``settings.sweep_every_frames``-th frame and the last one,
+    are searched whole (:func:`~bsipipe.imaging.detect.detect_arrays`); a detection that no
+    track holds (none found within a diameter, no lost track's gate around it) starts a new
+    track, which is first followed backwards through the frames since the previous sweep
+    (kept in memory, at most ``sweep_every_frames`` of them) as far as it is found there, then
+    forwards with the other tracks.  Every frame in between is searched only in each live
+    track's window, as with seeds (:func:`_search_frame`: prediction, global assignment,
+    second look).  A track lost for more than ``memory`` frames ends; tracks with fewer than
+    ``min_track_frames`` positions are dropped; the others are named ``M1, M2, ...`` by
+    first appearance."""
+    S = settings.resolved(diameter_px)
+    every = max(1, int(settings.sweep_every_frames))
+    markers: list[_Marker] = []
+    n_back: list[int] = []                # each track's positions found backwards from its sweep
+    events: list[dict] = []
+    # per frame: (frame, marker indices, column arrays); backwards finds as single rows
+    recs: list[tuple[int, np.ndarray, dict]] = []
+    back: list[tuple[int, int, dict]] = []
+    times: dict[int, float] = {}
+    buf: list[list] = []                  # frames since the last sweep: [frame, image, found xy (list)]
+    fov = fov_info = where = dark = None
+    excl = max(1.0, float(diameter_px))
+
+    def sweep(f: int, img, found_xy: np.ndarray, lost: list[int], lost_pred, lost_gate) -> None:
+        # the tracks' own markers are not measured again: a found one's centre, a lost one's gate
+        d = detect_arrays(img, diameter_px, polarity, where, detection, dark=dark,
+                          skip=(np.vstack([found_xy, lost_pred]),
+                                np.concatenate([np.full(len(found_xy), excl), lost_gate])))
+        xy = np.column_stack([d["x_px"], d["y_px"]])
+        if len(xy) == 0:
+            return
+        free = np.ones(len(xy), bool)
+        if len(found_xy):
+            free &= (((xy[:, None, :] - found_xy[None, :, :]) ** 2).sum(-1) > excl ** 2).all(axis=1)
+        if len(lost):
+            free &= (((xy[:, None, :] - lost_pred[None, :, :]) ** 2).sum(-1) > lost_gate[None, :] ** 2).all(axis=1)
+        idx = []
+        for j in np.flatnonzero(free):
+            m = _Marker(str(len(markers)), xy[j].copy(), f)
+            m.update(f, xy[j], float(d["amplitude"][j]), float(d["sigma_px"][j]))
+            markers.append(m)
+            n_back.append(0)
+            idx.append(len(markers) - 1)
+        if not idx:
+            return
+        idx = np.array(idx)
+        vals = {c: np.asarray(d[c], float)[free] for c in ("x_px", "y_px", "snr", "amplitude", "area_px", "sigma_px")}
+        vals.update(found=np.ones(len(idx), bool), gate_px=np.full(len(idx), np.nan),
+                    pred=np.full((len(idx), 2), np.nan), status=["found"] * len(idx))
+        recs.append((f, idx, vals))
+        _follow_back(idx)
+
+    def _follow_back(idx) -> None:
+        """Follow the new markers ``idx`` backwards through the buffered frames (the sweep's
+        own frame, the last one in the buffer, excluded), each as far as it is found there
+        (all at once: one window search and one assignment per frame), away from the
+        markers already found in each frame."""
+        bs = []
+        for i in idx:
+            m = markers[i]
+            b = _Marker(m.name, m.pos.copy(), m.frame)
+            b.update(m.frame, m.pos, m.amps[0] if m.amps else np.nan, m.sigmas[0] if m.sigmas else np.nan)
+            bs.append((int(i), b))
+        for f, img, taken in reversed(buf[:-1]):
+            if not bs:
+                return
+            ms = [b for _, b in bs]
+            pred = np.array([b.predict(f, settings.motion, settings.max_extrapolation_frames) for b in ms])
+            gate = np.full(len(ms), S["gate_px"])
+            cand = window_arrays(img, pred, gate, diameter_px, polarity, detection, fov)
+            cxy = np.column_stack([cand["x_px"], cand["y_px"]])
+            compat = _looks_like(ms, cand["amplitude"], cand["sigma_px"], settings)
+            if taken and len(cxy):
+                compat &= ((cxy[:, None, :] - np.asarray(taken)[None, :, :]) ** 2).sum(-1).min(axis=1) > excl ** 2
+            match, _ = _assign(ms, pred, gate, cxy, compat, miss_cost=1.0)
+            still = []
+            for (i, b), p, j in zip(bs, pred, match):
+                if j < 0:
+                    continue                     # this one is followed no further back
+                vals = {c: float(cand[c][j]) for c in ("x_px", "y_px", "snr", "amplitude", "area_px", "sigma_px")}
+                vals.update(pred_x_px=float(p[0]), pred_y_px=float(p[1]), gate_px=float(S["gate_px"]))
+                back.append((f, i, vals))
+                n_back[i] += 1
+                taken.append(cxy[j].copy())
+                b.update(f, cxy[j], vals["amplitude"], vals["sigma_px"])
+                still.append((i, b))
+            bs = still
+
+    k = -1
+    for k, fr in enumerate(frames):
+        img, f, t = _unpack(fr, k, fps)
+        if on_frame is not None:
+            on_frame(f, img)
+        times[f] = t
+        if k == 0:
+            # the intensifier's field does not move: found once, in the first frame; dark
+            # objects (instruments) do move, so a sweep looks for them in its own frame
+            fov = _resolve_roi(img, roi)
+            fov_info = fov.to_dict() if fov is not None else {"found": False}
+            auto = roi is None or (isinstance(roi, str) and roi == "auto")
+            where = (fov if fov.found else "none") if auto else roi
+            dark = True if (auto and polarity == "dark") else None
+        live = [i for i, m in enumerate(markers) if not m.ended]
+        found_xy = np.zeros((0, 2))
+        lost, lost_pred, lost_gate = [], np.zeros((0, 2)), np.zeros(0)
+        if live:
+            ms = [markers[i] for i in live]
+            pred, gates = _predictions(ms, f, S, settings)
+            r = _search_frame(img, f, ms, pred, gates, diameter_px, polarity, detection, fov, settings, S,
+                              view, events)
+            recs.append((f, np.array(live), {c: r[c] for c in ("x_px", "y_px", "snr", "amplitude", "area_px",
+                                                                 "sigma_px", "found", "gate_px", "pred", "status")}))
+            hit = r["found"]
+            found_xy = np.column_stack([r["x_px"], r["y_px"]])[hit]
+            lost = [i for i, h in zip(live, hit) if not h]
+            lost_pred, lost_gate = r["pred"][~hit], r["gate_px"][~hit]
+            for i in lost:
+                # a track not yet confirmed (fewer than min_track_frames positions, those
+                # found backwards included) ends at its first miss: noise peaks come and go,
+                # and a wide gate kept open for them would only gather more noise
+                m = markers[i]
+                if f - m.frame > settings.memory or m.n_meas + n_back[i] < settings.min_track_frames:
+                    m.ended = True
+        buf.append([f, img, [p for p in found_xy]])
+        if k % every == 0:
+            sweep(f, img, found_xy, lost, lost_pred, lost_gate)
+            buf = [buf[-1]]
+        pending = (found_xy, lost, lost_pred, lost_gate)
+    if k >= 0 and k % every != 0:
+        # the last frame is swept too: a marker that came into view since the last sweep
+        # is followed back from there
+        sweep(buf[-1][0], buf[-1][1], *pending)
+    buf = []
+    return _swept_result(view, markers, recs, back, times, events, settings, S, fov_info)
+
+
+def _swept_result(view, markers, recs, back, times, events, settings, S, fov_info) -> TrackResult:
+    """The tidy table of :func:`_track_swept`: kept tracks named by first appearance, a row
+    per frame and track (``lost`` where it was not found)."""
+    num = ("x_px", "y_px", "snr", "amplitude", "area_px", "sigma_px", "gate_px", "pred_x_px", "pred_y_px")
+    fr = [np.full(len(idx), f, np.int64) for f, idx, _ in recs] + [np.array([f for f, _, _ in back], np.int64)]
+    ii = [np.asarray(idx, np.int64) for _, idx, _ in recs] + [np.array([i for _, i, _ in back], np.int64)]
+    col = {c: [v[c] for _, _, v in recs] for c in num[:7]}
+    col["pred_x_px"] = [v["pred"][:, 0] for _, _, v in recs]
+    col["pred_y_px"] = [v["pred"][:, 1] for _, _, v in recs]
+    for c in num:
+        col[c].append(np.array([v[c] for _, _, v in back], float))
+    fr, ii = np.concatenate(fr), np.concatenate(ii)
+    found = np.concatenate([v["found"] for _, _, v in recs] + [np.ones(len(back), bool)])
+    status = np.array([x for _, _, v in recs for x in v["status"]] + ["found"] * len(back), dtype=object)
+    # kept: tracks found in at least min_track_frames frames; named by their first frame
+    n_found = np.bincount(ii[found], minlength=len(markers))
+    first = np.full(len(markers), np.iinfo(np.int64).max)
+    np.minimum.at(first, ii[found], fr[found])
+    need = min(settings.min_track_frames, max(len(times), 1))
+    kept = [int(i) for i in np.argsort(first, kind="stable") if n_found[i] >= need and n_found[i] > 0]
+    names = {i: f"M{n + 1}" for n, i in enumerate(kept)}
+    by_name = {markers[i].name: nm for i, nm in names.items()}
+    frames_all = np.array(sorted(times), np.int64)
+    F, M = len(frames_all), len(kept)
+    pos = np.full(len(markers), -1)
+    pos[kept] = np.arange(M)
+    sel = pos[ii] >= 0 if len(ii) else np.zeros(0, bool)
+    at = np.searchsorted(frames_all, fr[sel]) * M + pos[ii[sel]]
+    data = {"view": [view] * (F * M), "frame": np.repeat(frames_all, M),
+            "time_s": np.repeat(np.array([times[f] for f in frames_all], float), M),
+            "marker": [names[i] for i in kept] * F}
+    for c in num:
+        arr = np.full(F * M, np.nan)
+        arr[at] = np.concatenate(col[c]).astype(float)[sel]
+        data[c] = arr
+    data["found"] = np.zeros(F * M, bool)
+    data["found"][at] = found[sel]
+    st = np.full(F * M, "lost", dtype=object)
+    st[at] = status[sel]
+    data["status"] = st.tolist()
+    table = pd.DataFrame(data, columns=TRACK_COLUMNS)
+    out_events = []
+    for e in events:
+        if e["marker"] not in by_name or ("other" in e and e["other"] not in by_name):
+            continue
+        e = dict(e, marker=by_name[e["marker"]])
+        if "other" in e:
+            e["other"] = by_name[e["other"]]
+        out_events.append(e)
+    return TrackResult(table, out_events, fov_info, {**settings.__dict__, **S})
+
+
 def _track_auto(frames, diameter_px, polarity, *, view, fps, roi, detection, settings, on_frame) -> TrackResult:
+    if detection.parity == "none":
+        return _track_swept(frames, diameter_px, polarity, view=view, fps=fps, roi=roi, detection=detection,
+                            settings=settings, on_frame=on_frame)
+    # trackpy parity: every frame detected whole as trackpy's locate does, then linked
     dets: list[dict] = []
     times = {}
-    fov_info = None
-    it = iter(frames)
-    first = next(it, None)
-    if detection.parity != "none":
-        def detect(img):
-            return {c: v.to_numpy(float) for c, v in detect_markers(img, diameter_px, polarity, roi, detection).items()}
-    elif first is not None:
-        # the intensifier's field does not move: found once, in the first frame; dark objects
-        # (instruments) do move, so they are looked for in every frame
-        img0 = _unpack(first, 0, fps)[0]
-        fov = _resolve_roi(img0, roi)
-        fov_info = fov.to_dict() if fov is not None else {"found": False}
-        auto = roi is None or (isinstance(roi, str) and roi == "auto")
-        where = (fov if fov.found else "none") if auto else roi
-        dark = True if (auto and polarity == "dark") else None
 
-        def detect(img):
-            return detect_arrays(img, diameter_px, polarity, where, detection, dark=dark)
-    for k, fr in enumerate(itertools.chain([first], it) if first is not None else ()):
+    def detect(img):
+        return {c: v.to_numpy(float) for c, v in detect_markers(img, diameter_px, polarity, roi, detection).items()}
+    for k, fr in enumerate(frames):
         img, f, t = _unpack(fr, k, fps)
         if on_frame is not None:
             on_frame(f, img)
@@ -543,7 +751,7 @@ def _track_auto(frames, diameter_px, polarity, *, view, fps, roi, detection, set
                              "pred_y_px": r.pred_y_px, "gate_px": r.gate_px, "status": "found"})
     table = pd.DataFrame(rows, columns=TRACK_COLUMNS)
     table["found"] = table["found"].astype(bool)
-    return TrackResult(table, events, fov_info, {**settings.__dict__, **S})
+    return TrackResult(table, events, None, {**settings.__dict__, **S})
 
 
 def link_detections(detections: pd.DataFrame, search_range_px: float, *, memory: int = 0,
