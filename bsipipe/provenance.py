@@ -9,6 +9,7 @@ import json
 import os
 import platform
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any, Iterable
@@ -192,8 +193,8 @@ class ResultSet:
         buf = io.BytesIO()
         fig.savefig(buf, format=Path(name).suffix.lstrip(".") or "png", dpi=dpi,
                     bbox_inches="tight" if tight else None)
-        import matplotlib.pyplot as plt
-        plt.close(fig)
+        if "matplotlib.pyplot" in sys.modules:      # a pyplot figure is closed (ours are not pyplot's)
+            sys.modules["matplotlib.pyplot"].close(fig)
         self.add_bytes(name, buf.getvalue())
 
     def commit(self) -> list[Path]:

@@ -12,9 +12,7 @@ def residual_figure(title: str, image_points: np.ndarray, residuals: np.ndarray,
 
     image_points : (n, 2) px; residuals : (n, 2) px.  Returns a matplotlib Figure.
     """
-    import matplotlib
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     p = np.asarray(image_points, float).reshape(-1, 2)
     e = np.asarray(residuals, float).reshape(-1, 2)
@@ -22,7 +20,8 @@ def residual_figure(title: str, image_points: np.ndarray, residuals: np.ndarray,
     w, h = image_size
     med = float(np.percentile(mag, 90)) if len(mag) else 0.0
     scale = 0.04 * w / med if med > 0 else 1.0
-    fig, ax = plt.subplots(figsize=(6.4, 6.4 * h / w + 0.6))
+    fig = Figure(figsize=(6.4, 6.4 * h / w + 0.6))
+    ax = fig.subplots()
     q = ax.quiver(p[:, 0], p[:, 1], e[:, 0] * scale, e[:, 1] * scale, mag, angles="xy", scale_units="xy",
                   scale=1.0, cmap="viridis", width=0.003)
     ax.set_xlim(0, w)

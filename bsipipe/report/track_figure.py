@@ -10,22 +10,23 @@ import pandas as pd
 MAX_LEGEND = 20
 
 
-def _plt():
-    import matplotlib
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-    return plt
+def _figure(figsize):
+    """A :class:`matplotlib.figure.Figure` of its own (no pyplot: its import and global state
+    cost a command about a quarter of a second and buy nothing when writing files)."""
+    from matplotlib.figure import Figure
+    return Figure(figsize=figsize)
 
 
 def trajectories_figure(table2d: pd.DataFrame, points3d: pd.DataFrame | None = None, title: str = ""):
     """2-D tracks of every view (x_px, y_px per marker; lost frames left as gaps, losses and
     re-finds marked) and, with 3-D points, x/y/z in mm against time (raw lines, filtered
     dashed where present).  Returns a matplotlib Figure."""
-    plt = _plt()
+    import matplotlib
     views = list(dict.fromkeys(table2d["view"]))
     n3 = 0 if points3d is None or points3d.empty else 1
-    fig, axes = plt.subplots(1, len(views) + n3, figsize=(5.2 * (len(views) + n3), 4.8), squeeze=False)
-    cmap = plt.get_cmap("tab10")
+    fig = _figure((5.2 * (len(views) + n3), 4.8))
+    axes = fig.subplots(1, len(views) + n3, squeeze=False)
+    cmap = matplotlib.colormaps["tab10"]
     markers = list(dict.fromkeys(table2d["marker"]))
     colour = {m: cmap(i % 10) for i, m in enumerate(markers)}
     for ax, v in zip(axes[0], views):
@@ -74,9 +75,10 @@ def overlay_figure(images: dict[str, np.ndarray], table2d: pd.DataFrame, frame: 
                    seeds: pd.DataFrame | None = None, diameter_px: float = 4.0):
     """One frame per view with the tracked markers (circles, names) and the seeds (+).
     Each panel is cropped to the markers with a margin, so small beads stay visible."""
-    plt = _plt()
+    from matplotlib.patches import Circle
     views = [v for v in images]
-    fig, axes = plt.subplots(1, len(views), figsize=(6.0 * len(views), 6.0), squeeze=False)
+    fig = _figure((6.0 * len(views), 6.0))
+    axes = fig.subplots(1, len(views), squeeze=False)
     for ax, v in zip(axes[0], views):
         img = np.asarray(images[v])
         t = table2d[(table2d["view"] == v) & (table2d["frame"] == frame[v])]
@@ -97,7 +99,7 @@ def overlay_figure(images: dict[str, np.ndarray], table2d: pd.DataFrame, frame: 
         ax.imshow(img[y0:y1, x0:x1], cmap="gray", vmin=lo, vmax=hi if hi > lo else lo + 1, interpolation="nearest",
                   extent=(x0 - 0.5, x1 - 0.5, y1 - 0.5, y0 - 0.5))
         for rr in ok.itertuples():
-            ax.add_patch(plt.Circle((rr.x_px, rr.y_px), r, fill=False, color="tab:orange", lw=0.8))
+            ax.add_patch(Circle((rr.x_px, rr.y_px), r, fill=False, color="tab:orange", lw=0.8))
             ax.annotate(str(rr.marker), (rr.x_px + r, rr.y_px - r), color="tab:orange", fontsize=7)
         if seeds is not None and len(seeds):
             s = seeds[seeds["view"] == v]
