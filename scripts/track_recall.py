@@ -1,6 +1,6 @@
 """Score ``bsipipe track`` against a twin's truth, per trial and per marker.
 
-    python scripts/track_recall.py results/sheep1 [TRIAL_DIR ...] [--mp4 WORKDIR]
+    python scripts/track_recall.py results/sheep1 [TRIAL_DIR ...] [--mp4 WORKDIR | --retrack WORKDIR]
 
 Each TRIAL_DIR is a study trial (``synth/`` with ``truth_markers.csv``, ``track/`` with
 ``markers2d.csv`` and ``markers3d.csv``).  Printed per trial: the visible positions (truth
@@ -10,6 +10,8 @@ RMS of each position's error over its stated sd (``sd_px``, ``sd_px_smooth``; 1 
 stated errors are honest), and the markers that miss the most.  ``--mp4 WORKDIR``: the trial's frames are first written to MP4
 (OpenCV ``mp4v`` at its default quality, the trial's frame rate) in ``WORKDIR/<trial>`` and
 tracked there with the trial's own track config: the same score on compressed video.
+``--retrack WORKDIR``: the trial's own frames are tracked again with its track config into
+``WORKDIR/<trial>/track`` (the current code on the study's frames, its outputs left alone).
 """
 
 from __future__ import annotations
@@ -57,6 +59,14 @@ def score(synth_dir: Path, track_dir: Path) -> dict:
             "worst": [(v, mk, int(r.hit), int(r.vis)) for (v, mk), r in per.head(3).iterrows() if r.missed > 0]}
 
 
+def retrack(trial: Path, work: Path) -> Path:
+    """Track the trial's frames again with its own track config; returns the track output."""
+    work.mkdir(parents=True, exist_ok=True)
+    subprocess.run([sys.executable, "-m", "bsipipe.cli", "-q", "track", str(trial / "config" / "track.yaml"),
+                    "-o", str(work / "track")], check=True, stdout=subprocess.DEVNULL)
+    return work / "track"
+
+
 def to_mp4(trial: Path, work: Path) -> Path:
     """The trial's frames as MP4 and its track config pointing at them; returns the track output."""
     import cv2
@@ -85,14 +95,19 @@ if __name__ == "__main__":
     args = sys.argv[1:]
     if not args or args[0] in ("-h", "--help"):
         sys.exit(__doc__)
-    mp4 = None
+    mp4 = again = None
     if "--mp4" in args:
         i = args.index("--mp4")
         mp4 = Path(args[i + 1])
         del args[i:i + 2]
+    if "--retrack" in args:
+        i = args.index("--retrack")
+        again = Path(args[i + 1])
+        del args[i:i + 2]
     total = {"visible": 0, "found_1px": 0, "off_1px": 0}
     for d in (Path(a) for a in args if (Path(a) / "synth" / "truth_markers.csv").exists()):
-        track = to_mp4(d, mp4 / d.name) if mp4 is not None else d / "track"
+        track = (to_mp4(d, mp4 / d.name) if mp4 is not None else retrack(d, again / d.name) if again is not None
+                 else d / "track")
         s = score(d / "synth", track)
         for k in total:
             total[k] += s[k]

@@ -709,3 +709,21 @@ def test_detect_arrays_skip_leaves_the_other_markers_as_they_were():
     keep = ~(((xy[:, None, :] - held[None, :, :]) ** 2).sum(-1) <= 4.0).any(axis=1)
     for c in D.COLUMNS:
         np.testing.assert_array_equal(part[c], full[c][keep])
+
+
+def test_a_blob_far_wider_than_the_marker_is_not_taken_for_one():
+    """``max_sigma_factor`` (0.75 d): a dark Gaussian smudge of sigma 3.5 px (what a video
+    codec leaves of a faint bead, or a corner of bone) beside a 4 px bead is not reported as a
+    marker; the bead is.  (Six tracking twins written to mp4v: the visible positions found
+    within 1 px rose from 91.5 % to 93.3 % with this limit, their PNG frames' 99.44 % unchanged.)"""
+    size = 160
+    rng = np.random.default_rng(2)
+    img = render_beads(np.array([[50.3, 80.6]]), 4.0, size, rng).astype(float)
+    yy, xx = np.mgrid[:size, :size]
+    img -= 14.0 * np.exp(-((xx - 110.0) ** 2 + (yy - 78.0) ** 2) / (2 * 3.5 ** 2))
+    img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    got = D.detect_arrays(img, 4.0, "dark", "none")
+    assert len(got["x_px"]) == 1 and abs(got["x_px"][0] - 50.3) < 0.3
+    loose = D.detect_arrays(img, 4.0, "dark", "none", D.DetectionSettings(max_sigma_factor=None))
+    wide = np.hypot(loose["x_px"] - 110.0, loose["y_px"] - 78.0) < 1.5
+    assert wide.sum() == 1 and loose["sigma_px"][wide][0] > 3.0

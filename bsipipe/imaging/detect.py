@@ -463,7 +463,8 @@ class DetectionSettings:
     ``centroid``, ``radial``); ``blur_px``: the marker's blur sigma, which sets the top-hat's
     smoothing and the patch sizes (default ``max(0.6, d/5)``); ``window_radius_px``:
     centroid and fit window (default ``d/2 + 1.5 blur``); ``structuring_px``: side of the
-    top-hat's disk (default :func:`structuring_size`); ``parity``: ``"trackpy"`` replaces the
+    top-hat's disk (default :func:`structuring_size`); ``max_sigma_factor``: a fitted Gaussian
+    width above this times the diameter is not a marker (None: no limit); ``parity``: ``"trackpy"`` replaces the
     whole chain by trackpy's (:func:`locate_trackpy`, for comparisons with trackpy users'
     results; needs ``method="centroid"``), ``minmass`` its mass threshold.
     """
@@ -480,6 +481,7 @@ class DetectionSettings:
     window_radius_px: float | None = None
     structuring_px: int | None = None
     min_roundness: float | None = 0.5
+    max_sigma_factor: float | None = 0.75
     parity: Literal["none", "trackpy"] = "none"
     minmass: float = 0.0
 
@@ -1111,6 +1113,12 @@ def _finish(img, xs, ys, area, noise, diameter_px, polarity, st, mask=None, neig
     m["area_px"] = np.asarray(area, float)
     m["snr"] = m["amplitude"] / np.maximum(np.asarray(noise, float), 1e-9)
     keep = np.isfinite(m["x_px"]) & (m["snr"] >= st.min_snr) & (m["elongation"] <= st.max_elongation)
+    if st.max_sigma_factor is not None:
+        # a Gaussian this wide (half-maximum width 1.8 d at the default 0.75) is not a bead of
+        # diameter d seen through the blur, but something larger the fit spread over (the
+        # smear a video codec leaves of a faint bead, an instrument's corner, bone)
+        with np.errstate(invalid="ignore"):
+            keep &= ~(m["sigma_px"] > st.max_sigma_factor * diameter_px)
     # a marker cut by the image border has no trustworthy centre
     h, w = img.shape
     b = min(0.5 * diameter_px, st.window_px(diameter_px))
