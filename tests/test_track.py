@@ -161,6 +161,35 @@ def test_automatic_mode_follows_a_new_marker_back_to_where_it_appeared():
     assert d.max() < 0.02
 
 
+def test_automatic_mode_in_a_dense_field():
+    """120 beads in a 200 x 200 frame (12.5 px apart), each moving 0.6 px per frame in its own direction:
+    their search windows would hold more pixels than the frame, so each frame is searched
+    whole and the tracks take their beads from it (the window search's prediction,
+    assignment and appearance tests, on the whole frame's candidates); every bead keeps one
+    track, every position within 0.5 px of its bead (two beads that close in bias each
+    other's centres by a few tenths)."""
+    from bsipipe.imaging.detect import window_strip_px
+    size, n, nb = 200, 8, 120
+    rng = np.random.default_rng(4)
+    g = np.stack(np.meshgrid(np.arange(-7, 8), np.arange(-7, 8)), -1).reshape(-1, 2) * 12.5
+    g = g[np.argsort(np.hypot(g[:, 0], g[:, 1]), kind="stable")][:nb]       # inside the intensifier's circle
+    p0 = 99.5 + g + rng.uniform(-2, 2, (nb, 2))
+    ang = rng.uniform(0, 2 * np.pi, nb)
+    v = 0.6 * np.column_stack([np.cos(ang), np.sin(ang)])
+    truth = np.stack([p0 + k * v for k in range(n)])
+    assert window_strip_px(nb, 6.0, 4.0) > 0.5 * size * size
+    frames = [render_beads(truth[k], 4.0, size, rng) for k in range(n)]
+    res = track_view(frames, None, 4.0, "dark", roi="none")
+    tab = res.table[res.table["found"]]
+    assert tab["marker"].nunique() == nb
+    for m, grp in tab.groupby("marker"):
+        d = np.hypot(truth[grp["frame"].to_numpy(), :, 0] - grp["x_px"].to_numpy()[:, None],
+                     truth[grp["frame"].to_numpy(), :, 1] - grp["y_px"].to_numpy()[:, None])
+        owner = d.argmin(axis=1)
+        assert (owner == owner[0]).all() and d.min(axis=1).max() < 0.5
+    assert len(tab) >= 0.98 * nb * n
+
+
 # --- linking against trackpy on real microscopy --------------------------------------------------------
 
 def trackpy_30():

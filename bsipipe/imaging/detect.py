@@ -1716,6 +1716,25 @@ def detect_arrays(frame: np.ndarray, diameter_px: float, polarity: Polarity = "d
 
 # --- windows (seeded refinement and tracking) ----------------------------------------------------
 
+def _window_geometry(radius_px: float, diameter_px: float, st: DetectionSettings) -> tuple[int, int]:
+    """(half side, pad) of :func:`window_arrays`' windows for search radius ``radius_px``: a
+    window is ``2 half + 1`` square, cut ``pad`` columns wider on both sides."""
+    k = st.se_px(diameter_px)
+    sg = st.smooth_px(diameter_px)
+    b = k // 2 + int(math.ceil(3 * sg)) + 1
+    half = int(math.ceil(radius_px)) + b + int(math.ceil(diameter_px))
+    return half, 2 * (k // 2) + len(_gauss_kernel(float(sg))) // 2
+
+
+def window_strip_px(n: int, radius_px: float, diameter_px: float,
+                    settings: DetectionSettings = DetectionSettings()) -> int:
+    """Pixels :func:`window_arrays` filters for ``n`` windows of largest radius
+    ``radius_px``: against a frame's, the cost of searching the windows instead of the whole
+    frame."""
+    half, pad = _window_geometry(radius_px, diameter_px, settings)
+    return (2 * half + 1) * n * (2 * half + 1 + 2 * pad)
+
+
 def window_arrays(frame: np.ndarray, centres_xy, radii_px, diameter_px: float, polarity: Polarity = "dark",
                   settings: DetectionSettings = DetectionSettings(),
                   fov: FieldOfView | None = None) -> dict:
@@ -1744,8 +1763,8 @@ def window_arrays(frame: np.ndarray, centres_xy, radii_px, diameter_px: float, p
         return {k: np.zeros(0) for k in COLUMNS}
     k = st.se_px(diameter_px)
     sg = st.smooth_px(diameter_px)
+    half, pad = _window_geometry(float(radii.max()), diameter_px, st)
     b = k // 2 + int(math.ceil(3 * sg)) + 1
-    half = int(math.ceil(radii.max())) + b + int(math.ceil(diameter_px))
     W = 2 * half + 1
     n = len(c)
     icx = np.rint(c[:, 0]).astype(int)
@@ -1758,7 +1777,6 @@ def window_arrays(frame: np.ndarray, centres_xy, radii_px, diameter_px: float, p
     # statistics, and its threshold would depend on which other markers are searched in the
     # same frame.  ``wide`` (W, n Wp); window i is wide[:, i Wp + pad:i Wp + pad + W].  ``use``
     # (n, W, W): the pixels searched (inside the image)
-    pad = 2 * (k // 2) + len(_gauss_kernel(float(sg))) // 2
     Wp = W + 2 * pad
     if (min(xl) >= half + pad and min(yl) >= half and max(xl) < w - half - pad and max(yl) < h - half):
         # every window inside the image (the usual case): slices, no index arrays

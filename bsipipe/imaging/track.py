@@ -32,7 +32,8 @@ first frame, as with seeds) in the first frame, every ``sweep_every_frames``-th 
 a detection that no track holds starts a new track, which is first followed backwards through
 the frames since the previous sweep, then forwards with the others.  In between, every track
 is searched for in its own window exactly as a seeded marker is (the per-frame work is that of
-the seeded mode, not a whole-frame detection).  A track not seen for more than ``memory``
+the seeded mode, not a whole-frame detection); where the windows would hold more pixels than
+half the frame, the frame is searched whole instead (and swept).  A track not seen for more than ``memory``
 frames ends, a new one not yet seen in ``min_track_frames`` frames at its first miss.  With
 trackpy parity every frame is detected whole as ``trackpy.locate`` does and the detections are
 linked (:func:`link_detections`).
@@ -52,7 +53,7 @@ from scipy.optimize import linear_sum_assignment
 
 from .detect import COLUMNS as DETECT_COLUMNS
 from .detect import (DetectionSettings, FieldOfView, Polarity, detect_arrays, detect_markers, find_field_of_view,
-                     window_arrays)
+                     window_arrays, window_strip_px)
 
 log = logging.getLogger(__name__)
 
@@ -340,12 +341,14 @@ def _predictions(markers: list[_Marker], f: int, S: dict, settings: TrackSetting
 
 def _search_frame(img, f: int, live: list[_Marker], pred, gates, diameter_px: float, polarity: Polarity,
                   detection: DetectionSettings, fov, settings: TrackSettings, S: dict, view: str,
-                  events: list[dict], *, second_look: bool = True) -> dict:
+                  events: list[dict], *, second_look: bool = True, cand: dict | None = None) -> dict:
     """One frame of the window search: candidates in each marker's gate around its
     prediction, the global assignment, the second look, and each marker's update and events
-    (appended to ``events``).  Returns per-marker arrays ``x_px, y_px, snr, amplitude,
+    (appended to ``events``).  ``cand``: the frame's candidates when they are already known (a
+    whole-frame detection), instead of a search in the windows.  Returns per-marker arrays ``x_px, y_px, snr, amplitude,
     area_px, sigma_px, found, gate_px``, ``pred`` (n, 2) and the ``status`` list."""
-    cand = window_arrays(img, pred, gates, diameter_px, polarity, detection, fov)
+    if cand is None:
+        cand = window_arrays(img, pred, gates, diameter_px, polarity, detection, fov)
     cxy = np.column_stack([cand["x_px"], cand["y_px"]])
     camp, csig = cand["amplitude"], cand["sigma_px"]
     # a marker being found again after a gap must look whole: a partial candidate at the
@@ -532,11 +535,12 @@ def _track_swept(frames, diameter_px, polarity, *, view, fps, roi, detection, se
     fov = fov_info = where = dark = None
     excl = max(1.0, float(diameter_px))
 
-    def sweep(f: int, img, found_xy: np.ndarray, lost: list[int], lost_pred, lost_gate) -> None:
-        # the tracks' own markers are not measured again: a found one's centre, a lost one's gate
-        d = detect_arrays(img, diameter_px, polarity, where, detection, dark=dark,
-                          skip=(np.vstack([found_xy, lost_pred]),
-                                np.concatenate([np.full(len(found_xy), excl), lost_gate])))
+    def sweep(f: int, img, found_xy: np.ndarray, lost: list[int], lost_pred, lost_gate, d=None) -> None:
+        if d is None:
+            # the tracks' own markers are not measured again: a found one's centre, a lost one's gate
+            d = detect_arrays(img, diameter_px, polarity, where, detection, dark=dark,
+                              skip=(np.vstack([found_xy, lost_pred]),
+                                    np.concatenate([np.full(len(found_xy), excl), lost_gate])))
         xy = np.column_stack([d["x_px"], d["y_px"]])
         if len(xy) == 0:
             return
@@ -614,11 +618,16 @@ def _track_swept(frames, diameter_px, polarity, *, view, fps, roi, detection, se
         live = [i for i, m in enumerate(markers) if not m.ended]
         found_xy = np.zeros((0, 2))
         lost, lost_pred, lost_gate = [], np.zeros((0, 2)), np.zeros(0)
+        whole = None
         if live:
             ms = [markers[i] for i in live]
             pred, gates = _predictions(ms, f, S, settings)
+            if window_strip_px(len(ms), float(gates.max()), diameter_px, detection) > 0.5 * img.size:
+                # so many tracks that their windows hold more pixels than half the frame:
+                # the whole frame is searched instead (it is cheaper), and swept as well
+                whole = detect_arrays(img, diameter_px, polarity, where, detection, dark=dark)
             r = _search_frame(img, f, ms, pred, gates, diameter_px, polarity, detection, fov, settings, S,
-                              view, events)
+                              view, events, cand=whole)
             recs.append((f, np.array(live), {c: r[c] for c in ("x_px", "y_px", "snr", "amplitude", "area_px",
                                                                  "sigma_px", "found", "gate_px", "pred", "status")}))
             hit = r["found"]
@@ -633,11 +642,12 @@ def _track_swept(frames, diameter_px, polarity, *, view, fps, roi, detection, se
                 if f - m.frame > settings.memory or m.n_meas + n_back[i] < settings.min_track_frames:
                     m.ended = True
         buf.append([f, img, [p for p in found_xy]])
-        if k % every == 0:
-            sweep(f, img, found_xy, lost, lost_pred, lost_gate)
+        swept = k % every == 0 or whole is not None
+        if swept:
+            sweep(f, img, found_xy, lost, lost_pred, lost_gate, whole)
             buf = [buf[-1]]
         pending = (found_xy, lost, lost_pred, lost_gate)
-    if k >= 0 and k % every != 0:
+    if k >= 0 and not swept:
         # the last frame is swept too: a marker that came into view since the last sweep
         # is followed back from there
         sweep(buf[-1][0], buf[-1][1], *pending)
