@@ -187,8 +187,9 @@ def test_twin_at_the_noise_of_real_carm_frames(twin_default_noise):
 def test_twin_without_seeds(twin_default_noise):
     """Automatic mode (no seeds) at the real frames' noise: every track follows one true
     marker (no found position more than 1 px off it: no swap, no track of noise), every
-    marker visible in the first frame has a track, and at least 98 % of the visible
-    positions are found within 1 px.  Tracking the tracks in search windows between
+    marker visible in the first frame has a track, at least 98 % of the visible positions
+    are found within 1 px, and the marker hidden by the indentor keeps its track across the
+    gap (a new track that starts where the ended one would have been found continues it).  Tracking the tracks in search windows between
     whole-frame sweeps (with the seeded mode's prediction, assignment and second look)
     raised this from the per-frame detection and linking it replaced (measured on this
     twin: see the printout)."""
@@ -221,3 +222,11 @@ def test_twin_without_seeds(twin_default_noise):
         first = {ids[0] for ids in owners.values()}
         assert set(vis[vis["frame"] == vis["frame"].min()]["marker"]) <= first
         assert frac >= 0.98
+        # the marker hidden by the indentor keeps its track: one track per marker, its name
+        # re-found after the gap (the track had ended after ``memory`` frames)
+        assert len(owners) == tv["marker"].nunique()
+        hidden = {"cam1": "M2", "cam2": "M4"}[view]
+        name = next(m for m, ids in owners.items() if ids[0] == hidden)
+        last_hidden = int(tv[(tv["marker"] == hidden) & tv["occluded"].astype(bool)]["frame"].max())
+        assert any(e["kind"] == "refound" and e["marker"] == name and e["frame"] > last_hidden - 3
+                   for e in res.events)

@@ -34,7 +34,10 @@ the frames since the previous sweep, then forwards with the others.  In between,
 is searched for in its own window exactly as a seeded marker is (the per-frame work is that of
 the seeded mode, not a whole-frame detection); where the windows would hold more pixels than
 half the frame, the frame is searched whole instead (and swept).  A track not seen for more than ``memory``
-frames ends, a new one not yet seen in ``min_track_frames`` frames at its first miss.  With
+frames ends, a new one not yet seen in ``min_track_frames`` frames at its first miss; a new
+track that starts where an ended one would have been found had it still been searched for
+(within the gate grown since its last position, looking like it) continues it, under its
+name (gap closing across an occlusion, as with seeds).  With
 trackpy parity every frame is detected whole as ``trackpy.locate`` does and the detections are
 linked (:func:`link_detections`).
 """
@@ -526,6 +529,9 @@ def _track_swept(frames, diameter_px, polarity, *, view, fps, roi, detection, se
     every = max(1, int(settings.sweep_every_frames))
     markers: list[_Marker] = []
     n_back: list[int] = []                # each track's positions found backwards from its sweep
+    first: dict[int, tuple] = {}          # a new track's earliest position: (frame, xy, amplitude, sigma)
+    dormant: list[int] = []               # confirmed tracks ended by ``memory``: a new track may continue one
+    alias: dict[int, int] = {}            # new track -> the ended track it continues
     events: list[dict] = []
     # per frame: (frame, marker indices, column arrays); backwards finds as single rows
     recs: list[tuple[int, np.ndarray, dict]] = []
@@ -556,6 +562,7 @@ def _track_swept(frames, diameter_px, polarity, *, view, fps, roi, detection, se
             markers.append(m)
             n_back.append(0)
             idx.append(len(markers) - 1)
+            first[idx[-1]] = (f, xy[j].copy(), float(d["amplitude"][j]), float(d["sigma_px"][j]))
         if not idx:
             return
         idx = np.array(idx)
@@ -564,6 +571,38 @@ def _track_swept(frames, diameter_px, polarity, *, view, fps, roi, detection, se
                     pred=np.full((len(idx), 2), np.nan), status=["found"] * len(idx))
         recs.append((f, idx, vals))
         _follow_back(idx)
+        _continue_ended(idx)
+
+    def _continue_ended(idx) -> None:
+        """A new track that starts where an ended (confirmed) one would have been found had
+        it still been searched for -- within the gate grown since its last position, looking
+        like it -- continues it (the same name; a ``refound`` event): the gap closing of the
+        seeded mode, for tracks that ``memory`` ended."""
+        if not dormant:
+            return
+        pairs = []
+        for i in idx:
+            fb, pb, amp, sig = first[int(i)]
+            for j in dormant:
+                mj = markers[j]
+                if mj.frame >= fb:
+                    continue
+                gate = mj.gate(fb, S["gate_px"], S["gate_growth_px"], S["max_gate_px"])
+                d2 = float(((pb - mj.predict(fb, settings.motion, settings.max_extrapolation_frames)) ** 2).sum())
+                if d2 <= gate ** 2 and _looks_like([mj], [amp], [sig], settings, whole=[True])[0, 0]:
+                    pairs.append((d2 / gate ** 2, int(i), j, fb, math.sqrt(d2)))
+        taken_i, taken_j = set(), set()
+        for _, i, j, fb, dist in sorted(pairs):
+            if i in taken_i or j in taken_j:
+                continue
+            taken_i.add(i)
+            taken_j.add(j)
+            alias[i] = j
+            dormant.remove(j)
+            mj = markers[j]
+            gap = int(fb - (mj.lost_since if mj.lost_since is not None else mj.frame + 1))
+            events.append({"view": view, "frame": int(fb), "marker": mj.name, "kind": "refound", "gap_frames": gap,
+                           "distance_px": dist, "detail": f"found again after {gap} frame(s) (its track had ended)"})
 
     def _follow_back(idx) -> None:
         """Follow the new markers ``idx`` backwards through the buffered frames (the sweep's
@@ -596,6 +635,7 @@ def _track_swept(frames, diameter_px, polarity, *, view, fps, roi, detection, se
                 vals.update(pred_x_px=float(p[0]), pred_y_px=float(p[1]), gate_px=float(S["gate_px"]))
                 back.append((f, i, vals))
                 n_back[i] += 1
+                first[i] = (f, cxy[j].copy(), vals["amplitude"], vals["sigma_px"])
                 taken.append(cxy[j].copy())
                 b.update(f, cxy[j], vals["amplitude"], vals["sigma_px"])
                 still.append((i, b))
@@ -639,8 +679,11 @@ def _track_swept(frames, diameter_px, polarity, *, view, fps, roi, detection, se
                 # found backwards included) ends at its first miss: noise peaks come and go,
                 # and a wide gate kept open for them would only gather more noise
                 m = markers[i]
-                if f - m.frame > settings.memory or m.n_meas + n_back[i] < settings.min_track_frames:
+                confirmed = m.n_meas + n_back[i] >= settings.min_track_frames
+                if f - m.frame > settings.memory or not confirmed:
                     m.ended = True
+                    if confirmed:
+                        dormant.append(i)
         buf.append([f, img, [p for p in found_xy]])
         swept = k % every == 0 or whole is not None
         if swept:
@@ -652,12 +695,13 @@ def _track_swept(frames, diameter_px, polarity, *, view, fps, roi, detection, se
         # is followed back from there
         sweep(buf[-1][0], buf[-1][1], *pending)
     buf = []
-    return _swept_result(view, markers, recs, back, times, events, settings, S, fov_info)
+    return _swept_result(view, markers, recs, back, times, events, settings, S, fov_info, alias)
 
 
-def _swept_result(view, markers, recs, back, times, events, settings, S, fov_info) -> TrackResult:
+def _swept_result(view, markers, recs, back, times, events, settings, S, fov_info, alias=None) -> TrackResult:
     """The tidy table of :func:`_track_swept`: kept tracks named by first appearance, a row
-    per frame and track (``lost`` where it was not found)."""
+    per frame and track (``lost`` where it was not found); ``alias``: a track that continues
+    another (ended) one takes its place."""
     num = ("x_px", "y_px", "snr", "amplitude", "area_px", "sigma_px", "gate_px", "pred_x_px", "pred_y_px")
     fr = [np.full(len(idx), f, np.int64) for f, idx, _ in recs] + [np.array([f for f, _, _ in back], np.int64)]
     ii = [np.asarray(idx, np.int64) for _, idx, _ in recs] + [np.array([i for _, i, _ in back], np.int64)]
@@ -669,6 +713,20 @@ def _swept_result(view, markers, recs, back, times, events, settings, S, fov_inf
     fr, ii = np.concatenate(fr), np.concatenate(ii)
     found = np.concatenate([v["found"] for _, _, v in recs] + [np.ones(len(back), bool)])
     status = np.array([x for _, _, v in recs for x in v["status"]] + ["found"] * len(back), dtype=object)
+    root = np.arange(len(markers))
+    for i, j in (alias or {}).items():
+        while j in alias:
+            j = alias[j]
+        root[i] = j
+    if len(ii):
+        ii = root[ii]
+        # a continued track's last "lost" rows may share frames with its continuation's first
+        # rows (followed back): the found row stands
+        order = np.lexsort((~found, ii, fr))
+        key = fr[order] * len(markers) + ii[order]
+        keep = order[np.unique(key, return_index=True)[1]]
+        fr, ii, found, status = fr[keep], ii[keep], found[keep], status[keep]
+        col = {c: [np.concatenate(v).astype(float)[keep]] for c, v in col.items()}
     # kept: tracks found in at least min_track_frames frames; named by their first frame
     n_found = np.bincount(ii[found], minlength=len(markers))
     first = np.full(len(markers), np.iinfo(np.int64).max)
@@ -676,7 +734,7 @@ def _swept_result(view, markers, recs, back, times, events, settings, S, fov_inf
     need = min(settings.min_track_frames, max(len(times), 1))
     kept = [int(i) for i in np.argsort(first, kind="stable") if n_found[i] >= need and n_found[i] > 0]
     names = {i: f"M{n + 1}" for n, i in enumerate(kept)}
-    by_name = {markers[i].name: nm for i, nm in names.items()}
+    by_name = {markers[i].name: names[int(root[i])] for i in range(len(markers)) if int(root[i]) in names}
     frames_all = np.array(sorted(times), np.int64)
     F, M = len(frames_all), len(kept)
     pos = np.full(len(markers), -1)
