@@ -161,6 +161,29 @@ def test_automatic_mode_follows_a_new_marker_back_to_where_it_appeared():
     assert d.max() < 0.02
 
 
+def test_automatic_mode_follows_a_new_marker_back_across_a_gap():
+    """A marker that comes into view at frame 3 and is hidden in frames 12-13 is first found
+    by the sweep of frame 20; followed backwards as tracks are followed forwards (a gap of
+    up to ``memory`` frames is crossed, the gate growing), its track starts at frame 3, not
+    after the gap."""
+    size, n, appear, hidden = 160, 24, 3, (12, 13)
+    rng = np.random.default_rng(8)
+    t = np.arange(n, dtype=float)
+    A = np.column_stack([50 + 0.5 * t, 60 + 0 * t])
+    N = np.column_stack([100 + 0.3 * t, 40 + 1.2 * t])
+    field = RayField(bead_camera(size))
+    frames = [render_beads(np.vstack([A[i], N[i]]), 4.0, size, rng, field=field,
+                           skip=(1,) if i < appear or i in hidden else ()) for i in range(n)]
+    res = track_view(frames, None, 4.0, "dark", roi="none", settings=TrackSettings(sweep_every_frames=20))
+    tab = res.table[res.table["found"]]
+    assert sorted(tab["marker"].unique()) == ["M1", "M2"]
+    new = tab[tab["marker"] == "M2"].set_index("frame")
+    assert new.index.min() == appear
+    assert sorted(new.index) == [i for i in range(appear, n) if i not in hidden]
+    e = np.hypot(new["x_px"] - N[new.index, 0], new["y_px"] - N[new.index, 1])
+    assert e.max() < 0.3
+
+
 def test_automatic_mode_in_a_dense_field():
     """120 beads in a 200 x 200 frame (12.5 px apart), each moving 0.6 px per frame in its own direction:
     their search windows would hold more pixels than the frame, so each frame is searched

@@ -79,6 +79,8 @@ class TrackingConfig(StrictModel):
                                     "markers in the first frame, every this many frames and the last (a new one "
                                     "is followed back to where it appeared); in between each track is searched "
                                     "for in its own window")
+    back_frames: int = Field(60, ge=0, description="automatic mode: a new marker is followed back through at most "
+                             "this many frames (held in memory)")
     second_look_k_sigma: PositiveFloat | None = Field(
         2.5, description="seeded mode: a marker nothing matched is looked for again in its gate with this window "
                          "threshold (robust sd), taken only if it passes min_snr and has the marker's own amplitude "

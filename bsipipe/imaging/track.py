@@ -30,7 +30,8 @@ Without seeds (:func:`_track_swept`) the whole frame is searched
 (:func:`~bsipipe.imaging.detect.detect_arrays`, the intensifier's field found once, in the
 first frame, as with seeds) in the first frame, every ``sweep_every_frames``-th and the last;
 a detection that no track holds starts a new track, which is first followed backwards through
-the frames since the previous sweep, then forwards with the others.  In between, every track
+the last ``back_frames`` frames (as tracks are followed forwards), then forwards with the
+others.  In between, every track
 is searched for in its own window exactly as a seeded marker is (the per-frame work is that of
 the seeded mode, not a whole-frame detection); where the windows would hold more pixels than
 half the frame, the frame is searched whole instead (and swept).  A track not seen for more than ``memory``
@@ -87,8 +88,8 @@ class TrackSettings:
     for until the end; a new automatic track ends at its first miss until it has been
     found in ``min_track_frames`` frames); ``min_track_frames``: shorter automatic tracks are
     dropped; ``sweep_every_frames``: automatic mode searches the whole frame for new markers
-    in the first frame, every this many frames and the last, and follows a new one back
-    through the frames since the previous sweep (held in memory: at most this many);
+    in the first frame, every this many frames and the last; ``back_frames``: it follows a
+    new one back through at most this many frames (held in memory);
     ``second_look_k_sigma``: a seeded marker that nothing in its gate matched, measured in
     the last ``max_extrapolation_frames`` frames, is looked for once more within
     ``second_look_radius_px`` (default ``max(1, d/4)``) of its prediction with this lower
@@ -117,6 +118,7 @@ class TrackSettings:
     second_look_k_sigma: float | None = 2.5
     second_look_radius_px: float | None = None
     sweep_every_frames: int = 20
+    back_frames: int = 60
 
     def resolved(self, d: float) -> dict:
         return {"gate_px": self.gate_px if self.gate_px is not None else max(3.0, 1.5 * d),
@@ -149,11 +151,13 @@ class _Marker:
         at most ``max_frames`` frames (None: all the way)."""
         if motion == "static" or self.n_meas < 2:
             return self.pos.copy()
-        df = f - self.frame
-        return self.pos + self.vel * (df if max_frames is None else min(df, max_frames))
+        df = f - self.frame                     # negative when followed backwards
+        if max_frames is not None:
+            df = max(-max_frames, min(df, max_frames))
+        return self.pos + self.vel * df
 
     def gate(self, f: int, g0: float, g1: float, gmax: float) -> float:
-        return float(min(g0 + g1 * max(f - self.frame - 1, 0), gmax))
+        return float(min(g0 + g1 * max(abs(f - self.frame) - 1, 0), gmax))
 
     def update(self, f: int, xy: np.ndarray, amp: float, sigma: float = np.nan) -> None:
         x, y = float(xy[0]), float(xy[1])
@@ -161,7 +165,7 @@ class _Marker:
             dt = f - self.frame
             vx, vy = (x - float(self.pos[0])) / dt, (y - float(self.pos[1])) / dt
             # a fresh velocity after a gap, else a light smoothing of the last two
-            if not (self.n_meas < 2 or dt > 1):
+            if not (self.n_meas < 2 or abs(dt) > 1):
                 vx, vy = 0.7 * vx + 0.3 * float(self.vel[0]), 0.7 * vy + 0.3 * float(self.vel[1])
             self.vel = np.array([vx, vy])
         self.pos = np.array([x, y])
@@ -344,11 +348,14 @@ def _predictions(markers: list[_Marker], f: int, S: dict, settings: TrackSetting
 
 def _search_frame(img, f: int, live: list[_Marker], pred, gates, diameter_px: float, polarity: Polarity,
                   detection: DetectionSettings, fov, settings: TrackSettings, S: dict, view: str,
-                  events: list[dict], *, second_look: bool = True, cand: dict | None = None) -> dict:
+                  events: list[dict], *, second_look: bool = True, cand: dict | None = None,
+                  taken: np.ndarray | None = None) -> dict:
     """One frame of the window search: candidates in each marker's gate around its
     prediction, the global assignment, the second look, and each marker's update and events
     (appended to ``events``).  ``cand``: the frame's candidates when they are already known (a
-    whole-frame detection), instead of a search in the windows.  Returns per-marker arrays ``x_px, y_px, snr, amplitude,
+    whole-frame detection), instead of a search in the windows; ``taken`` (k, 2): positions
+    other markers hold in this frame (a candidate within a diameter of one is not taken).
+    Returns per-marker arrays ``x_px, y_px, snr, amplitude,
     area_px, sigma_px, found, gate_px``, ``pred`` (n, 2) and the ``status`` list."""
     if cand is None:
         cand = window_arrays(img, pred, gates, diameter_px, polarity, detection, fov)
@@ -358,6 +365,11 @@ def _search_frame(img, f: int, live: list[_Marker], pred, gates, diameter_px: fl
     # edge of a gate grown while it was hidden is more likely clutter, or the edge of the
     # instrument that hid it, than the marker (it is taken a frame later, whole)
     compat = _looks_like(live, camp, csig, settings, whole=[m.lost_since is not None for m in live])
+    if taken is not None and len(taken) and len(cxy):
+        # candidates other markers already hold in this frame (within a diameter) are not free
+        free = ((cxy[:, None, :] - np.asarray(taken, float)[None, :, :]) ** 2).sum(-1).min(axis=1) \
+            > max(1.0, diameter_px) ** 2
+        compat &= free[None, :]
     match, d2 = _assign(live, pred, gates, cxy, compat, miss_cost=1.0)
     weak = np.zeros(len(live), bool)
     if settings.second_look_k_sigma is not None and second_look:
@@ -428,7 +440,7 @@ def _second_look(frame: int, img, live: list[_Marker], pred, gates, cand: dict, 
     pass's, then the new ones), ``match`` and ``d2`` over them, and which markers the second
     look found."""
     n_x = max(settings.max_extrapolation_frames, 1)
-    recent = np.array([np.isfinite(m.amp_median) and frame - m.frame <= n_x for m in live], bool)
+    recent = np.array([np.isfinite(m.amp_median) and abs(frame - m.frame) <= n_x for m in live], bool)
     miss = np.flatnonzero((match < 0) & recent)
     weak = np.zeros(len(live), bool)
     if len(miss) == 0 or settings.second_look_k_sigma >= detection.window_k_sigma:
@@ -518,13 +530,15 @@ def _track_swept(frames, diameter_px, polarity, *, view, fps, roi, detection, se
     The first frame, then every ``settings.sweep_every_frames``-th frame and the last one,
     are searched whole (:func:`~bsipipe.imaging.detect.detect_arrays`); a detection that no
     track holds (none found within a diameter, no lost track's gate around it) starts a new
-    track, which is first followed backwards through the frames since the previous sweep
-    (kept in memory, at most ``sweep_every_frames`` of them) as far as it is found there, then
-    forwards with the other tracks.  Every frame in between is searched only in each live
-    track's window, as with seeds (:func:`_search_frame`: prediction, global assignment,
-    second look).  A track lost for more than ``memory`` frames ends; tracks with fewer than
-    ``min_track_frames`` positions are dropped; the others are named ``M1, M2, ...`` by
-    first appearance."""
+    track, which is first followed backwards through the last ``back_frames`` frames (kept in
+    memory) as tracks are followed forwards, then forwards with the other tracks.  Every
+    frame in between is searched only in each live track's window, as with seeds
+    (:func:`_search_frame`: prediction, global assignment, second look); where the windows
+    would hold more pixels than half the frame, the frame is searched whole (and swept)
+    instead.  A track lost for more than ``memory`` frames ends (a new one at its first miss
+    until it has ``min_track_frames`` positions); a new track that starts where an ended one
+    would have been found continues it; tracks with fewer than ``min_track_frames`` positions
+    are dropped; the others are named ``M1, M2, ...`` by first appearance."""
     S = settings.resolved(diameter_px)
     every = max(1, int(settings.sweep_every_frames))
     markers: list[_Marker] = []
@@ -537,7 +551,7 @@ def _track_swept(frames, diameter_px, polarity, *, view, fps, roi, detection, se
     recs: list[tuple[int, np.ndarray, dict]] = []
     back: list[tuple[int, int, dict]] = []
     times: dict[int, float] = {}
-    buf: list[list] = []                  # frames since the last sweep: [frame, image, found xy (list)]
+    buf: list[list] = []                  # the last back_frames frames: [frame, image, found xy (list)]
     fov = fov_info = where = dark = None
     excl = max(1.0, float(diameter_px))
 
@@ -606,40 +620,40 @@ def _track_swept(frames, diameter_px, polarity, *, view, fps, roi, detection, se
 
     def _follow_back(idx) -> None:
         """Follow the new markers ``idx`` backwards through the buffered frames (the sweep's
-        own frame, the last one in the buffer, excluded), each as far as it is found there
-        (all at once: one window search and one assignment per frame), away from the
-        markers already found in each frame."""
+        own frame, the last one in the buffer, excluded) as they are followed forwards
+        (:func:`_search_frame`: prediction, gates, assignment, second look), away from the
+        markers already found in each frame; each until it has been missed for more than
+        ``memory`` frames (at its first miss while it has fewer than ``min_track_frames``
+        positions)."""
         bs = []
         for i in idx:
             m = markers[i]
             b = _Marker(m.name, m.pos.copy(), m.frame)
             b.update(m.frame, m.pos, m.amps[0] if m.amps else np.nan, m.sigmas[0] if m.sigmas else np.nan)
             bs.append((int(i), b))
+        scratch: list[dict] = []                 # backwards losses and re-finds are not events
         for f, img, taken in reversed(buf[:-1]):
+            # followed back until missed for more than ``memory`` frames; not yet confirmed
+            # (fewer than min_track_frames positions), until its first miss, as forwards
+            bs = [(i, b) for i, b in bs if abs(b.frame - f) - 1 <= (settings.memory if b.n_meas >=
+                                                                    settings.min_track_frames else 0)]
             if not bs:
                 return
             ms = [b for _, b in bs]
-            pred = np.array([b.predict(f, settings.motion, settings.max_extrapolation_frames) for b in ms])
-            gate = np.full(len(ms), S["gate_px"])
-            cand = window_arrays(img, pred, gate, diameter_px, polarity, detection, fov)
-            cxy = np.column_stack([cand["x_px"], cand["y_px"]])
-            compat = _looks_like(ms, cand["amplitude"], cand["sigma_px"], settings)
-            if taken and len(cxy):
-                compat &= ((cxy[:, None, :] - np.asarray(taken)[None, :, :]) ** 2).sum(-1).min(axis=1) > excl ** 2
-            match, _ = _assign(ms, pred, gate, cxy, compat, miss_cost=1.0)
-            still = []
-            for (i, b), p, j in zip(bs, pred, match):
-                if j < 0:
-                    continue                     # this one is followed no further back
-                vals = {c: float(cand[c][j]) for c in ("x_px", "y_px", "snr", "amplitude", "area_px", "sigma_px")}
-                vals.update(pred_x_px=float(p[0]), pred_y_px=float(p[1]), gate_px=float(S["gate_px"]))
+            pred, gates = _predictions(ms, f, S, settings)
+            r = _search_frame(img, f, ms, pred, gates, diameter_px, polarity, detection, fov, settings, S, view,
+                              scratch, taken=np.asarray(taken, float).reshape(-1, 2))
+            for k in np.flatnonzero(r["found"]):
+                i = bs[k][0]
+                vals = {c: float(r[c][k]) for c in ("x_px", "y_px", "snr", "amplitude", "area_px", "sigma_px",
+                                                    "gate_px")}
+                vals.update(pred_x_px=float(r["pred"][k, 0]), pred_y_px=float(r["pred"][k, 1]),
+                            status=r["status"][k])
                 back.append((f, i, vals))
                 n_back[i] += 1
-                first[i] = (f, cxy[j].copy(), vals["amplitude"], vals["sigma_px"])
-                taken.append(cxy[j].copy())
-                b.update(f, cxy[j], vals["amplitude"], vals["sigma_px"])
-                still.append((i, b))
-            bs = still
+                xy = np.array([vals["x_px"], vals["y_px"]])
+                first[i] = (f, xy, vals["amplitude"], vals["sigma_px"])
+                taken.append(xy)
 
     k = -1
     for k, fr in enumerate(frames):
@@ -688,7 +702,8 @@ def _track_swept(frames, diameter_px, polarity, *, view, fps, roi, detection, se
         swept = k % every == 0 or whole is not None
         if swept:
             sweep(f, img, found_xy, lost, lost_pred, lost_gate, whole)
-            buf = [buf[-1]]
+        if len(buf) > max(every, settings.back_frames) + 1:
+            del buf[0]
         pending = (found_xy, lost, lost_pred, lost_gate)
     if k >= 0 and not swept:
         # the last frame is swept too: a marker that came into view since the last sweep
@@ -712,7 +727,8 @@ def _swept_result(view, markers, recs, back, times, events, settings, S, fov_inf
         col[c].append(np.array([v[c] for _, _, v in back], float))
     fr, ii = np.concatenate(fr), np.concatenate(ii)
     found = np.concatenate([v["found"] for _, _, v in recs] + [np.ones(len(back), bool)])
-    status = np.array([x for _, _, v in recs for x in v["status"]] + ["found"] * len(back), dtype=object)
+    status = np.array([x for _, _, v in recs for x in v["status"]] + [v.get("status", "found") for _, _, v in back],
+                      dtype=object)
     root = np.arange(len(markers))
     for i, j in (alias or {}).items():
         while j in alias:
