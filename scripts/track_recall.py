@@ -84,39 +84,28 @@ def score(synth_dir: Path, track_dir: Path, auto: bool = False) -> dict:
             "worst": [(v, mk, int(r.hit), int(r.vis)) for (v, mk), r in per.head(3).iterrows() if r.missed > 0]}
 
 
-def retrack(trial: Path, work: Path, seeds: bool = True) -> Path:
-    """Track the trial's frames again with its own track config (``seeds`` False: without
-    its seeds); returns the track output."""
+def retrack(trial: Path, work: Path, seeds: bool = True, mp4: bool = False) -> Path:
+    """Track the trial's frames again with its own track config into ``work/track``
+    (``seeds`` False: without its seeds; ``mp4``: from its frames written as MP4, OpenCV's
+    ``mp4v`` at its default quality and the trial's frame rate); returns the track output."""
     import yaml
 
     work.mkdir(parents=True, exist_ok=True)
     cfg = yaml.safe_load((trial / "config" / "track.yaml").read_text())
-    if not seeds:
-        cfg["seeds"] = None
-    (work / "track.yaml").write_text(yaml.safe_dump(cfg))
-    subprocess.run([sys.executable, "-m", "bsipipe.cli", "-q", "track", str(work / "track.yaml"),
-                    "-o", str(work / "track")], check=True, stdout=subprocess.DEVNULL)
-    return work / "track"
+    if mp4:
+        import cv2
 
-
-def to_mp4(trial: Path, work: Path, seeds: bool = True) -> Path:
-    """The trial's frames as MP4 and its track config pointing at them; returns the track output."""
-    import cv2
-    import yaml
-
-    work.mkdir(parents=True, exist_ok=True)
-    cfg = yaml.safe_load((trial / "config" / "track.yaml").read_text())
-    fps = float(cfg.get("fps") or 2.0)
-    for v, src in cfg["views"].items():
-        frames = sorted(Path(src).glob("*.png"), key=lambda p: [int(t) if t.isdigit() else t
-                                                               for t in re.split(r"(\d+)", p.name)])
-        first = cv2.imread(str(frames[0]), cv2.IMREAD_GRAYSCALE)
-        out = cv2.VideoWriter(str(work / f"{v}.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), fps,
-                              first.shape[::-1], isColor=False)
-        for f in frames:
-            out.write(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE))
-        out.release()
-        cfg["views"][v] = str(work / f"{v}.mp4")
+        fps = float(cfg.get("fps") or 2.0)
+        for v, src in cfg["views"].items():
+            frames = sorted(Path(src).glob("*.png"), key=lambda p: [int(t) if t.isdigit() else t
+                                                                   for t in re.split(r"(\d+)", p.name)])
+            first = cv2.imread(str(frames[0]), cv2.IMREAD_GRAYSCALE)
+            out = cv2.VideoWriter(str(work / f"{v}.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), fps,
+                                  first.shape[::-1], isColor=False)
+            for f in frames:
+                out.write(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE))
+            out.release()
+            cfg["views"][v] = str(work / f"{v}.mp4")
     if not seeds:
         cfg["seeds"] = None
     (work / "track.yaml").write_text(yaml.safe_dump(cfg))
@@ -142,7 +131,7 @@ if __name__ == "__main__":
         del args[i:i + 2]
     total = {"visible": 0, "found_1px": 0, "off_1px": 0}
     for d in (Path(a) for a in args if (Path(a) / "synth" / "truth_markers.csv").exists()):
-        track = (to_mp4(d, mp4 / d.name, not auto) if mp4 is not None else
+        track = (retrack(d, mp4 / d.name, not auto, mp4=True) if mp4 is not None else
                  retrack(d, again / d.name, not auto) if again is not None else d / "track")
         s = score(d / "synth", track, auto)
         for k in total:
