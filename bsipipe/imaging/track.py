@@ -595,16 +595,17 @@ def _track_swept(frames, diameter_px, polarity, *, view, fps, roi, detection, se
         if not dormant:
             return
         pairs = []
+        ms = [markers[j] for j in dormant]
+        last = np.array([m.frame for m in ms])
         for i in idx:
             fb, pb, amp, sig = first[int(i)]
-            for j in dormant:
-                mj = markers[j]
-                if mj.frame >= fb:
-                    continue
-                gate = mj.gate(fb, S["gate_px"], S["gate_growth_px"], S["max_gate_px"])
-                d2 = float(((pb - mj.predict(fb, settings.motion, settings.max_extrapolation_frames)) ** 2).sum())
-                if d2 <= gate ** 2 and _looks_like([mj], [amp], [sig], settings, whole=[True])[0, 0]:
-                    pairs.append((d2 / gate ** 2, int(i), j, fb, math.sqrt(d2)))
+            # the ended tracks' predictions and gates in frame fb, all at once (a dense field
+            # ends many tracks), then the appearance test for those near enough
+            pred, gates = _predictions(ms, fb, S, settings)
+            d2 = ((pred - pb) ** 2).sum(axis=1)
+            for k in np.flatnonzero((last < fb) & (d2 <= gates ** 2)):
+                if _looks_like([ms[k]], [amp], [sig], settings, whole=[True])[0, 0]:
+                    pairs.append((d2[k] / gates[k] ** 2, int(i), dormant[k], fb, math.sqrt(d2[k])))
         taken_i, taken_j = set(), set()
         for _, i, j, fb, dist in sorted(pairs):
             if i in taken_i or j in taken_j:
@@ -702,7 +703,7 @@ def _track_swept(frames, diameter_px, polarity, *, view, fps, roi, detection, se
         swept = k % every == 0 or whole is not None
         if swept:
             sweep(f, img, found_xy, lost, lost_pred, lost_gate, whole)
-        if len(buf) > max(every, settings.back_frames) + 1:
+        if len(buf) > max(0, settings.back_frames) + 1:
             del buf[0]
         pending = (found_xy, lost, lost_pred, lost_gate)
     if k >= 0 and not swept:
