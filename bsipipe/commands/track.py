@@ -75,6 +75,9 @@ class TrackingConfig(StrictModel):
     max_extrapolation_frames: int = Field(3, ge=0, description="a hidden marker moves on at its last velocity "
                                           "for at most this many frames")
     min_track_frames: int = Field(3, ge=1, description="automatic mode: shorter tracks are dropped")
+    frame_shift: bool = Field(True, description="a shift of the whole picture between frames (a jolt of the "
+                              "C-arm or the head) is found from the markers and every prediction moved with it "
+                              "(a frame-shift event)")
     sweep_every_frames: int = Field(20, ge=1, description="automatic mode: the whole frame is searched for new "
                                     "markers in the first frame, every this many frames and the last (a new one "
                                     "is followed back to where it appeared); in between each track is searched "

@@ -25,6 +25,11 @@ Every change is reported as an event (``events``: view, frame, marker, kind, det
   round at a cost less than ``ambiguity_px**2`` higher: an identity swap is possible here.
 - ``partial``: the marker's amplitude fell below ``partial_fraction`` of its median (it is
   partly hidden, e.g. entering the shadow of an instrument): its centre may be biased.
+- ``frame-shift`` (``marker`` None): the whole picture moved between two frames (the C-arm
+  or the head jolted; ``dx_px``, ``dy_px``): the markers seen in the frame before were
+  missed, or found off their predictions by a common offset, and the offset most of them
+  agree on (:func:`_frame_shift`) was added to every prediction (and left out of the
+  velocities).  ``frame_shift=False`` in the settings switches this off.
 
 Without seeds (:func:`_track_swept`) the whole frame is searched
 (:func:`~bsipipe.imaging.detect.detect_arrays`, the intensifier's field found once, in the
@@ -101,7 +106,9 @@ class TrackSettings:
     texture in the window inflates the spread it is set from; near the prediction of a
     marker seen a frame or two ago the area is a few pixels and the marker's own amplitude
     and width are the stronger test (None: no second look).  Such positions have status
-    ``weak``.
+    ``weak``.  ``frame_shift``: when the markers seen a frame before are missed or found off
+    their predictions by a common offset, the offset of the whole picture is looked for
+    (:func:`_frame_shift`) and every prediction moved by it (a ``frame-shift`` event).
     """
 
     gate_px: float | None = None
@@ -117,6 +124,7 @@ class TrackSettings:
     appearance: tuple[float, float, float, float] = (0.3, 2.5, 0.6, 1.6)
     second_look_k_sigma: float | None = 2.5
     second_look_radius_px: float | None = None
+    frame_shift: bool = True
     sweep_every_frames: int = 20
     back_frames: int = 60
 
@@ -159,11 +167,14 @@ class _Marker:
     def gate(self, f: int, g0: float, g1: float, gmax: float) -> float:
         return float(min(g0 + g1 * max(abs(f - self.frame) - 1, 0), gmax))
 
-    def update(self, f: int, xy: np.ndarray, amp: float, sigma: float = np.nan) -> None:
+    def update(self, f: int, xy: np.ndarray, amp: float, sigma: float = np.nan, offset=None) -> None:
+        """Take the measurement ``xy`` in frame ``f``; ``offset``: a shift of the whole frame
+        found in this frame (:func:`_frame_shift`), left out of the velocity."""
         x, y = float(xy[0]), float(xy[1])
         if self.n_meas >= 1:
             dt = f - self.frame
-            vx, vy = (x - float(self.pos[0])) / dt, (y - float(self.pos[1])) / dt
+            ox, oy = (0.0, 0.0) if offset is None else (float(offset[0]), float(offset[1]))
+            vx, vy = (x - ox - float(self.pos[0])) / dt, (y - oy - float(self.pos[1])) / dt
             # a fresh velocity after a gap, else a light smoothing of the last two
             if not (self.n_meas < 2 or abs(dt) > 1):
                 vx, vy = 0.7 * vx + 0.3 * float(self.vel[0]), 0.7 * vy + 0.3 * float(self.vel[1])
@@ -357,20 +368,38 @@ def _search_frame(img, f: int, live: list[_Marker], pred, gates, diameter_px: fl
     other markers hold in this frame (a candidate within a diameter of one is not taken).
     Returns per-marker arrays ``x_px, y_px, snr, amplitude,
     area_px, sigma_px, found, gate_px``, ``pred`` (n, 2) and the ``status`` list."""
-    if cand is None:
-        cand = window_arrays(img, pred, gates, diameter_px, polarity, detection, fov)
-    cxy = np.column_stack([cand["x_px"], cand["y_px"]])
-    camp, csig = cand["amplitude"], cand["sigma_px"]
-    # a marker being found again after a gap must look whole: a partial candidate at the
-    # edge of a gate grown while it was hidden is more likely clutter, or the edge of the
-    # instrument that hid it, than the marker (it is taken a frame later, whole)
-    compat = _looks_like(live, camp, csig, settings, whole=[m.lost_since is not None for m in live])
-    if taken is not None and len(taken) and len(cxy):
-        # candidates other markers already hold in this frame (within a diameter) are not free
-        free = ((cxy[:, None, :] - np.asarray(taken, float)[None, :, :]) ** 2).sum(-1).min(axis=1) \
-            > max(1.0, diameter_px) ** 2
-        compat &= free[None, :]
-    match, d2 = _assign(live, pred, gates, cxy, compat, miss_cost=1.0)
+    whole = cand
+
+    def first_pass(pred):
+        c = whole if whole is not None else window_arrays(img, pred, gates, diameter_px, polarity, detection, fov)
+        cxy = np.column_stack([c["x_px"], c["y_px"]])
+        # a marker being found again after a gap must look whole: a partial candidate at the
+        # edge of a gate grown while it was hidden is more likely clutter, or the edge of the
+        # instrument that hid it, than the marker (it is taken a frame later, whole)
+        compat = _looks_like(live, c["amplitude"], c["sigma_px"], settings,
+                             whole=[m.lost_since is not None for m in live])
+        if taken is not None and len(taken) and len(cxy):
+            # candidates other markers already hold in this frame (within a diameter) are not free
+            free = ((cxy[:, None, :] - np.asarray(taken, float)[None, :, :]) ** 2).sum(-1).min(axis=1) \
+                > max(1.0, diameter_px) ** 2
+            compat &= free[None, :]
+        return c, cxy, compat, *_assign(live, pred, gates, cxy, compat, miss_cost=1.0)
+
+    cand, cxy, compat, match, d2 = first_pass(pred)
+    shift = np.zeros(2)
+    if settings.frame_shift and len(live) >= 3:
+        found = _frame_shift(img, f, live, pred, match, cxy, whole, diameter_px, polarity, detection, fov,
+                             settings, S)
+        if found is not None:
+            # the whole picture moved (the C-arm or the head jolted): the predictions move with it
+            again = first_pass(pred + found)
+            if (again[3] >= 0).sum() > (match >= 0).sum():
+                shift = found
+                pred = pred + found
+                cand, cxy, compat, match, d2 = again
+                events.append({"view": view, "frame": f, "marker": None, "kind": "frame-shift",
+                               "dx_px": float(found[0]), "dy_px": float(found[1]),
+                               "detail": "the whole picture moved: every prediction moved with it"})
     weak = np.zeros(len(live), bool)
     if settings.second_look_k_sigma is not None and second_look:
         near = np.minimum(gates, S["second_look_radius_px"])
@@ -417,12 +446,65 @@ def _search_frame(img, f: int, live: list[_Marker], pred, gates, diameter_px: fl
                 events.append({"view": view, "frame": f, "marker": m.name, "kind": "partial",
                                "amplitude_ratio": amp / med,
                                "detail": "amplitude below its median: partly hidden, centre may be biased"})
-            m.update(f, (xs[i], ys[i]), amp if not partial else np.nan, sigs[i] if not partial else np.nan)
+            m.update(f, (xs[i], ys[i]), amp if not partial else np.nan, sigs[i] if not partial else np.nan,
+                     offset=shift)
     val["found"] = hit.copy()
+    val["shift"] = shift
     val["gate_px"] = np.asarray(gates, float)
     val["pred"] = np.asarray(pred, float).reshape(nm, 2)
     val["status"] = status
     return val
+
+
+def _frame_shift(img, f: int, live: list[_Marker], pred, match, cxy, whole, diameter_px: float, polarity: Polarity,
+                 detection: DetectionSettings, fov, settings: TrackSettings, S: dict):
+    """A shift of the whole picture in frame ``f``, or None.
+
+    Looked for only when the first pass suggests one: of the markers measured in the frame
+    before (at least 3), under 70 % matched, or the matched ones off their predictions by a
+    common offset (the median residual) larger than ``max(1, gate/4)``.  Then each of those
+    markers' candidates within ``max_gate_px`` of its prediction (that look like it) votes with
+    its offset from the prediction; the offset most markers agree on (within ``max(1, d/4)``)
+    wins if at least 3 markers and half of them agree, and it is the median of their offsets."""
+    recent = np.array([f - m.frame == 1 for m in live])
+    if recent.sum() < 3:
+        return None
+    hit = recent & (match >= 0)
+    tol = max(1.0, 0.25 * diameter_px)
+    if hit.sum() >= 0.7 * recent.sum():
+        res = cxy[match[hit]] - pred[hit]
+        common = np.median(res, axis=0)
+        if hit.sum() < 3 or np.hypot(*common) <= max(1.0, 0.25 * S["gate_px"]):
+            return None
+    idx = np.flatnonzero(recent)
+    R = S["max_gate_px"]
+    c = whole if whole is not None else window_arrays(img, pred[idx], np.full(len(idx), R), diameter_px, polarity,
+                                                      detection, fov)
+    xy = np.column_stack([c["x_px"], c["y_px"]])
+    if len(xy) == 0:
+        return None
+    ok = _looks_like([live[i] for i in idx], c["amplitude"], c["sigma_px"], settings, whole=np.ones(len(idx), bool))
+    off = xy[None, :, :] - pred[idx][:, None, :]                        # (markers, candidates, 2)
+    ok &= (off ** 2).sum(-1) <= R * R
+    mi, cj = np.nonzero(ok)
+    if len(mi) < 3:
+        return None
+    o = off[mi, cj]                                                   # every vote
+    close = ((o[:, None, :] - o[None, :, :]) ** 2).sum(-1) <= tol * tol
+    # support of each vote: the markers with a vote near it
+    support = np.array([len(set(mi[close[k]])) for k in range(len(o))])
+    best = support.max()
+    if best < max(3, 0.5 * len(idx)):
+        return None
+    k = int(np.flatnonzero(support == best)[np.argmin(np.hypot(*o[support == best].T))])
+    near = close[k]
+    # one offset per supporting marker (its vote nearest the winner), then their median
+    per = {}
+    for v, i in zip(np.flatnonzero(near), mi[near]):
+        if i not in per or np.hypot(*(o[v] - o[k])) < np.hypot(*(o[per[i]] - o[k])):
+            per[i] = v
+    shift = np.median(o[list(per.values())], axis=0)
+    return shift if np.hypot(*shift) > tol else None
 
 
 def _second_look(frame: int, img, live: list[_Marker], pred, gates, cand: dict, match, d2, diameter_px: float,
@@ -773,6 +855,9 @@ def _swept_result(view, markers, recs, back, times, events, settings, S, fov_inf
     table = pd.DataFrame(data, columns=TRACK_COLUMNS)
     out_events = []
     for e in events:
+        if e["marker"] is None:                   # an event of the frame, not of a track
+            out_events.append(e)
+            continue
         if e["marker"] not in by_name or ("other" in e and e["other"] not in by_name):
             continue
         e = dict(e, marker=by_name[e["marker"]])
