@@ -393,7 +393,9 @@ def _search_frame(img, f: int, live: list[_Marker], pred, gates, diameter_px: fl
         if found is not None:
             # the whole picture moved (the C-arm or the head jolted): the predictions move with it
             again = first_pass(pred + found)
-            if (again[3] >= 0).sum() > (match >= 0).sum():
+            n0, n1 = (match >= 0).sum(), (again[3] >= 0).sum()
+            # taken when it finds more markers, or as many nearer their predictions
+            if n1 > n0 or (n1 == n0 and n1 and _matched_d2(again[4], again[3]) < _matched_d2(d2, match)):
                 shift = found
                 pred = pred + found
                 cand, cxy, compat, match, d2 = again
@@ -454,6 +456,12 @@ def _search_frame(img, f: int, live: list[_Marker], pred, gates, diameter_px: fl
     val["pred"] = np.asarray(pred, float).reshape(nm, 2)
     val["status"] = status
     return val
+
+
+def _matched_d2(d2: np.ndarray, match: np.ndarray) -> float:
+    """Mean squared distance of the matched markers from their predictions."""
+    hit = np.flatnonzero(match >= 0)
+    return float(d2[hit, match[hit]].mean()) if len(hit) else np.inf
 
 
 def _frame_shift(img, f: int, live: list[_Marker], pred, match, cxy, whole, diameter_px: float, polarity: Polarity,
