@@ -544,3 +544,28 @@ def test_indentor_beads_ride_the_indentor_and_stay_clear_of_the_rod():
     for v in ("cam1", "cam2"):
         assert all(seq["visible"][v]["I1"]) and all(seq["visible"][v]["I2"])
     assert {s["marker"] for s in tw.seeds()} >= {"I1", "I2"}
+
+
+def test_frame_jolt_moves_the_anatomy_and_its_truth_together():
+    """``effects.frame_jolt_px``: every sequence frame after the first has the anatomy
+    shifted by whole pixels (up to 3 per axis here) on the detector; the detections stay
+    within 0.3 px (median) of the truth that shifted with them, the shifts are recorded in
+    the truth, and the intensifier's field does not move."""
+    from scipy.spatial import cKDTree
+
+    from bsipipe.imaging.detect import detect_arrays, find_field_of_view
+    cfg = SynthConfig.model_validate({"calibration": {"views": 0, "stereo_views": 0}, "sequence": {"n_frames": 4},
+                                      "effects": {"frame_jolt_px": 3}})
+    tw = Twin(cfg)
+    frames = dict(tw.sequence_frames())
+    rows = [r for r in tw.truth_markers_rows() if r["view"] == "cam1" and r["visible"]]
+    jolt = tw.truth()["sequence"]["frame_jolt_px"]["cam1"]
+    assert jolt[0] == [0, 0] and any(any(j) for j in jolt[1:])
+    fov0 = find_field_of_view(frames["sequence/cam1/frame_0000.png"])
+    for k in range(4):
+        img = frames[f"sequence/cam1/frame_{k:04d}.png"]
+        assert np.allclose(find_field_of_view(img).centre_px, fov0.centre_px, atol=0.5)
+        d = detect_arrays(img, 4.0, "dark")
+        truth = np.array([[r["x_px"], r["y_px"]] for r in rows if r["frame"] == k])
+        dist, _ = cKDTree(np.column_stack([d["x_px"], d["y_px"]])).query(truth)
+        assert np.median(dist) < 0.3

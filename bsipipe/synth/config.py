@@ -222,6 +222,9 @@ class EffectsConfig(StrictModel):
     occlusion: bool = Field(True, description="two implanted markers pass behind the indentor, one in each view")
     view_time_offset_s: float = Field(0.0, ge=-5, le=5, description="cam2's clock minus cam1's")
     moving_reference: bool = Field(False, description="reference R2 sits on the brain and moves with it")
+    frame_jolt_px: int = Field(0, ge=0, le=20, description="in every sequence frame after the first, the anatomy "
+                               "(everything but the intensifier's field) is shifted by a random whole number of px "
+                               "up to this per axis and view (C-arm vibration, head movement); the truth shifts too")
 
 
 class CtConfig(StrictModel):

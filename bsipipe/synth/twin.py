@@ -49,7 +49,7 @@ from .xray import (Detector, Patch, RayField, RodShadow, apply_patch, cylinder_c
 
 VIEWS = ("cam1", "cam2")
 _STREAMS = {"cameras": 1, "local": 2, "calibration": 3, "stereo": 4, "scene": 5, "frames": 6,
-            "log": 7, "ct": 8, "seeds": 9, "calib_noise": 10, "ct_noise": 11}
+            "log": 7, "ct": 8, "seeds": 9, "calib_noise": 10, "ct_noise": 11, "jolt": 12}
 
 
 class TwinError(ValueError):
@@ -58,6 +58,15 @@ class TwinError(ValueError):
     def __init__(self, message: str, key: str):
         super().__init__(message)
         self.key = key
+
+
+def _shifted(img: np.ndarray, dx: int, dy: int) -> np.ndarray:
+    """``img`` moved by whole pixels (+x right, +y down), the edge rows and columns repeated
+    into the uncovered border."""
+    h, w = img.shape
+    ys = np.clip(np.arange(h) - dy, 0, h - 1)
+    xs = np.clip(np.arange(w) - dx, 0, w - 1)
+    return img[ys[:, None], xs[None, :]]
 
 
 def stream(seed: int, name: str) -> np.random.Generator:
@@ -880,7 +889,9 @@ class Twin:
         ss = cfg.image.supersample
         rng = stream(cfg.seed, "frames")
         mu = cfg.xray.mu_steel_per_mm
-        truth = {"projections_px": {}, "occluded": {}, "visible": {}, "tip_px": {}}
+        truth = {"projections_px": {}, "occluded": {}, "visible": {}, "tip_px": {}, "jolt_px": {}}
+        jolt_rng = stream(cfg.seed, "jolt")
+        a = cfg.effects.frame_jolt_px
         for v in VIEWS:
             arm = self.arms[v]
             cam = arm.camera
@@ -894,6 +905,11 @@ class Twin:
             travel = sc.travel_mm(t)
             ref = None
             proj, occ = [], []
+            # a jolt moves the anatomy on the detector (not the intensifier's field): the
+            # transmission image is shifted, its edge repeated, before the exposure
+            jolt = jolt_rng.integers(-a, a + 1, (len(t), 2)) if a > 0 else np.zeros((len(t), 2), int)
+            jolt[0] = 0
+            truth["jolt_px"][v] = jolt
             for i in range(len(t)):
                 T = T0.copy()
                 rod_T = None
@@ -906,6 +922,9 @@ class Twin:
                     p = sphere_patch(arm.field, P[i, j], m.diameter_mm / 2, mu, ss)
                     apply_patch(T, p)
                     o.append(self._occluded(p, rod_T, (bx, by), u[j], cam, P[i, j], m))
+                if jolt[i].any():
+                    T = _shifted(T, int(jolt[i, 0]), int(jolt[i, 1]))
+                    u = u + jolt[i]
                 img, ref = arm.detector.expose(T, rng, ref)
                 proj.append(u)
                 occ.append(o)
@@ -916,7 +935,7 @@ class Twin:
             truth["projections_px"][v] = proj
             truth["occluded"][v] = occ
             truth["visible"][v] = inside & ~occ
-            truth["tip_px"][v] = cam.project(tips)
+            truth["tip_px"][v] = cam.project(tips) + jolt
         self._seq_truth = truth
 
     @staticmethod
@@ -1072,6 +1091,8 @@ class Twin:
                     seq[key] = {v: {m.name: st[key][v][:, j].tolist() for j, m in enumerate(sc.markers)}
                                 for v in VIEWS}
                 seq["indentor"]["tip_px"] = {v: st["tip_px"][v].tolist() for v in VIEWS}
+                if cfg.effects.frame_jolt_px:
+                    seq["frame_jolt_px"] = {v: st["jolt_px"][v].tolist() for v in VIEWS}
             out["sequence"] = seq
             out["ct"] = {"coordinate_system": "LPS", "R": R.tolist(), "t_mm": t.tolist(),
                          "maps": "x_ct = R @ x_world + t_mm", "frame": 0, "noise_mm": cfg.ct.noise_mm,
