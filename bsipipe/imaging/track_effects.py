@@ -469,6 +469,14 @@ def estimate_time_offset(d: StereoData, max_offset_s: float | None = None, xb: n
     periods and a tenth of the sequence) finds the basin and Brent's method the minimum of
     :math:`\sum g^2`; a second pass caps each term at :math:`(5 s)^2`, ``s`` the robust sd
     of the gaps there, so that a few wrong points cannot pull the estimate.
+
+    The estimate is rejected (0, with ``offset_rejected_s`` and why in ``note``) unless it
+    acts like a clock: B moved the other way by as much must fit worse than no offset
+    (interpolating B between its frames averages noise that is not smooth in time, such as
+    a jolt of its whole picture, alike either way), and the offset found on the even frames
+    must lower the odd frames' mean squared gap by at least half the gain on all frames
+    (noise shared by a frame's markers can line up with the motion by chance in one half,
+    not in both; ``held_out``).
     """
     from scipy.optimize import minimize_scalar
     xb = _smooth_runs(d.xb if xb is None else xb, smooth_frames)
@@ -528,11 +536,48 @@ def estimate_time_offset(d: StereoData, max_offset_s: float | None = None, xb: n
     cap = (5 * s1) ** 2
     step = 2 * lim / 80
     d2, c2 = minimise(lambda x: float(np.mean(np.minimum(gaps(x) ** 2, cap))), d1 - 2 * step, d1 + 2 * step, 21)
-    return {"view_time_offset_s": d2, "search_s": [float(-lim), float(lim)], "n_points": int(use.sum()),
-            "rms_gap_mm_at_zero": float(np.sqrt(np.mean(gaps(0.0) ** 2))),
-            "rms_gap_mm_at_best": float(np.sqrt(np.mean(gaps(d2) ** 2))), "robust_sd_mm": s1,
-            "frame_period_s": dt, "smooth_frames": int(smooth_frames),
-            "note": "gaps of the smoothed tracks, the points both views see over the whole search range"}
+    g0, gb = gaps(0.0), gaps(d2)
+    out = {"view_time_offset_s": d2, "search_s": [float(-lim), float(lim)], "n_points": int(use.sum()),
+           "rms_gap_mm_at_zero": float(np.sqrt(np.mean(g0 ** 2))),
+           "rms_gap_mm_at_best": float(np.sqrt(np.mean(gb ** 2))), "robust_sd_mm": s1,
+           "frame_period_s": dt, "smooth_frames": int(smooth_frames),
+           "note": "gaps of the smoothed tracks, the points both views see over the whole search range"}
+    # a clock offset is a direction in time: moving B the other way by as much must make the
+    # gaps worse than no offset at all.  Interpolating B between its frames also averages
+    # noise that is not smooth in time (a jolt of one view's whole picture, say), and does
+    # so alike either way: an "offset" that gains only that is no evidence of a clock offset
+    if d2 != 0.0:
+        # outliers capped as in the search, on the scale of the gaps without an offset (at the
+        # best offset the gaps of exact tracks are nothing, and would cap everything)
+        s0 = 1.4826 * float(np.median(np.abs(g0 - np.median(g0))))
+        cap0 = (5 * max(s0, s1)) ** 2
+        m0, mb, mo = (float(np.mean(np.minimum(g ** 2, cap0))) for g in (g0, gb, gaps(-d2)))
+        out["mean_sq_gap_mm2"] = {"zero": m0, "best": mb, "opposite": mo}
+        if not mo > m0:
+            out["view_time_offset_s"] = 0.0
+            out["offset_rejected_s"] = d2
+            out["note"] += ("; offset rejected: B moved the other way by as much fits as well as or better "
+                            f"than no offset (mean squared gap {mo:.3g} against {m0:.3g} mm^2; {mb:.3g} at the "
+                            "best): interpolation averaging noise, not a clock")
+        else:
+            # a clock holds for every frame: the offset found on the even frames must also lower
+            # the odd frames' gaps (noise shared by a frame's markers, such as a jolt, can
+            # line up with the motion by chance in one half, not in both)
+            even = (fi % 2) == 0
+            if even.sum() >= 10 and (~even).sum() >= 10:
+                de, _ = minimise(lambda x: float(np.mean(np.minimum(gaps(x)[even] ** 2, cap0))), -lim, lim, 81)
+                odd0 = float(np.mean(np.minimum(g0[~even] ** 2, cap0)))
+                odd1 = float(np.mean(np.minimum(gaps(de)[~even] ** 2, cap0)))
+                gain_all = 1.0 - mb / m0
+                gain_odd = 1.0 - odd1 / odd0
+                out["held_out"] = {"offset_even_frames_s": de, "gain_odd_frames": gain_odd, "gain_all": gain_all}
+                if gain_odd < 0.5 * gain_all:
+                    out["view_time_offset_s"] = 0.0
+                    out["offset_rejected_s"] = d2
+                    out["note"] += (f"; offset rejected: found on the even frames ({de:.4g} s) it lowers the odd "
+                                    f"frames' mean squared gap by {100 * gain_odd:.1f} %, against "
+                                    f"{100 * gain_all:.1f} % on all frames at {d2:.4g} s")
+    return out
 
 
 def find_swaps(d: StereoData, xb: np.ndarray, min_ratio: float = 0.25, min_noise_factor: float = 10.0) -> list[dict]:
