@@ -383,9 +383,9 @@ def _search_frame(img, f: int, live: list[_Marker], pred, gates, diameter_px: fl
             free = ((cxy[:, None, :] - np.asarray(taken, float)[None, :, :]) ** 2).sum(-1).min(axis=1) \
                 > max(1.0, diameter_px) ** 2
             compat &= free[None, :]
-        return c, cxy, compat, *_assign(live, pred, gates, cxy, compat, miss_cost=1.0)
+        return c, cxy, *_assign(live, pred, gates, cxy, compat, miss_cost=1.0)
 
-    cand, cxy, compat, match, d2 = first_pass(pred)
+    cand, cxy, match, d2 = first_pass(pred)
     shift = np.zeros(2)
     if settings.frame_shift and len(live) >= 3:
         found = _frame_shift(img, f, live, pred, match, cxy, whole, diameter_px, polarity, detection, fov,
@@ -393,12 +393,12 @@ def _search_frame(img, f: int, live: list[_Marker], pred, gates, diameter_px: fl
         if found is not None:
             # the whole picture moved (the C-arm or the head jolted): the predictions move with it
             again = first_pass(pred + found)
-            n0, n1 = (match >= 0).sum(), (again[3] >= 0).sum()
+            n0, n1 = (match >= 0).sum(), (again[2] >= 0).sum()
             # taken when it finds more markers, or as many nearer their predictions
-            if n1 > n0 or (n1 == n0 and n1 and _matched_d2(again[4], again[3]) < _matched_d2(d2, match)):
+            if n1 > n0 or (n1 == n0 and n1 and _matched_d2(again[3], again[2]) < _matched_d2(d2, match)):
                 shift = found
                 pred = pred + found
-                cand, cxy, compat, match, d2 = again
+                cand, cxy, match, d2 = again
                 events.append({"view": view, "frame": f, "marker": None, "kind": "frame-shift",
                                "dx_px": float(found[0]), "dy_px": float(found[1]),
                                "detail": "the whole picture moved: every prediction moved with it"})
