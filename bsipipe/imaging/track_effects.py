@@ -474,9 +474,9 @@ def estimate_time_offset(d: StereoData, max_offset_s: float | None = None, xb: n
     acts like a clock: B moved the other way by as much must fit worse than no offset
     (interpolating B between its frames averages noise that is not smooth in time, such as
     a jolt of its whole picture, alike either way), and the offset found on the even frames
-    must lower the odd frames' mean squared gap by at least half the gain on all frames
-    (noise shared by a frame's markers can line up with the motion by chance in one half,
-    not in both; ``held_out``).
+    must lower the odd frames' mean squared gap, and the one found on the odd frames the even
+    frames', by at least half the gain on all frames (noise shared by a frame's markers can
+    line up with the motion by chance in one half, not in both; ``held_out``).
     """
     from scipy.optimize import minimize_scalar
     xb = _smooth_runs(d.xb if xb is None else xb, smooth_frames)
@@ -565,17 +565,23 @@ def estimate_time_offset(d: StereoData, max_offset_s: float | None = None, xb: n
             # line up with the motion by chance in one half, not in both)
             even = (fi % 2) == 0
             if even.sum() >= 10 and (~even).sum() >= 10:
-                de, _ = minimise(lambda x: float(np.mean(np.minimum(gaps(x)[even] ** 2, cap0))), -lim, lim, 81)
-                odd0 = float(np.mean(np.minimum(g0[~even] ** 2, cap0)))
-                odd1 = float(np.mean(np.minimum(gaps(de)[~even] ** 2, cap0)))
                 gain_all = 1.0 - mb / m0
-                gain_odd = 1.0 - odd1 / odd0
-                out["held_out"] = {"offset_even_frames_s": de, "gain_odd_frames": gain_odd, "gain_all": gain_all}
-                if gain_odd < 0.5 * gain_all:
+                held = {}
+                for name, fit_on in (("even", even), ("odd", ~even)):
+                    # found on one half of the frames, judged on the other
+                    dh, _ = minimise(lambda x: float(np.mean(np.minimum(gaps(x)[fit_on] ** 2, cap0))), -lim, lim, 81)
+                    other = ~fit_on
+                    h0 = float(np.mean(np.minimum(g0[other] ** 2, cap0)))
+                    h1 = float(np.mean(np.minimum(gaps(dh)[other] ** 2, cap0)))
+                    held[name] = {"offset_s": dh, "gain_on_the_other_half": 1.0 - h1 / h0}
+                out["held_out"] = {"gain_all": gain_all, "fit_on": held}
+                worst = min(h["gain_on_the_other_half"] for h in held.values())
+                if worst < 0.5 * gain_all:
                     out["view_time_offset_s"] = 0.0
                     out["offset_rejected_s"] = d2
-                    out["note"] += (f"; offset rejected: found on the even frames ({de:.4g} s) it lowers the odd "
-                                    f"frames' mean squared gap by {100 * gain_odd:.1f} %, against "
+                    out["note"] += ("; offset rejected: found on the even frames (" + f"{held['even']['offset_s']:.4g}"
+                                    + " s) or the odd ones (" + f"{held['odd']['offset_s']:.4g}" + " s), it lowers the "
+                                    f"other half's mean squared gap by as little as {100 * worst:.1f} %, against "
                                     f"{100 * gain_all:.1f} % on all frames at {d2:.4g} s")
     return out
 
