@@ -20,6 +20,10 @@ WARNING.  A warning is a dict ``{"code": ..., "message": ..., **details}``; the 
     ``track``: a view's frames come lossily compressed (JPEG files, a video codec other than
     a raw or lossless one, a lossy DICOM transfer syntax): the codec removes the pixel noise
     the detection thresholds, SNR and ``sd_px`` are set from, and smears small beads.
+``frame-shifts``
+    ``track``: the whole picture jolted between frames in a view (``frame-shift`` events: a
+    C-arm's vibration, the head moving): the tracks follow the jolts, but the positions carry
+    them, and so do the 3-D points triangulated from them.
 ``large-ray-gap``
     Triangulated points whose two back-projected rays pass further apart than five times the
     median ray gap of their marker (and at least :data:`RAY_GAP_FLOOR_MM`) or than a stated

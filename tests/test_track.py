@@ -152,6 +152,33 @@ def test_a_jolt_of_the_whole_picture_does_not_swap_markers():
     assert errs[False][0] < 0.95 or errs[False][1] > 3.0
 
 
+def test_cli_warns_of_a_jolting_picture(tmp_path):
+    """``bsipipe track`` on frames whose whole picture jolts: a ``frame-shifts`` warning
+    naming the view, how many frames and the largest jolt; the markers are all found.  The
+    crossing sequence, which does not jolt, has no such warning."""
+    import cv2
+    for name, (frames, truth) in (("jolted", jolted_sequence()), ("steady", crossing_sequence(n=12))):
+        d = tmp_path / name
+        d.mkdir()
+        for k, img in enumerate(frames):
+            cv2.imwrite(str(d / f"f{k:03d}.png"), img)
+        seeds = tmp_path / f"{name}_seeds.csv"
+        pd.DataFrame([("cam1", f"B{j}", *truth[0, j]) for j in range(truth.shape[1])],
+                     columns=["view", "marker", "x_px", "y_px"]).to_csv(seeds, index=False)
+        out = tmp_path / f"{name}_out"
+        r = CliRunner().invoke(cli, ["-q", "track", "--view", f"cam1={d}", "--seeds", str(seeds),
+                                     "--diameter-px", "4", "--fps", "2", "-o", str(out)])
+        assert r.exit_code == 0, r.output
+        j = json.loads((out / "track.json").read_text())
+        codes = [w["code"] for w in j["warnings"]]
+        if name == "jolted":
+            w = next(w for w in j["warnings"] if w["code"] == "frame-shifts")
+            assert w["views"]["cam1"]["n_frames"] >= 5 and 2.0 < w["views"]["cam1"]["max_px"] < 9.0
+            assert pd.read_csv(out / "markers2d.csv")["found"].all()
+        else:
+            assert "frame-shifts" not in codes
+
+
 def test_automatic_mode_names_tracks():
     """Without seeds the whole frame is searched for new markers (here in frames 0 and 11,
     the last) and each track in its window between; the three beads become three tracks

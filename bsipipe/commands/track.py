@@ -576,6 +576,19 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
               "than sd_px (six twins written with OpenCV's mp4v: 93.3 % of the visible positions found within "
               "1 px, 99.4 % from their PNG frames); record lossless frames (PNG, TIFF, FFV1) where you can",
             log, views=lossy))
+    shifts: dict[str, list] = {}
+    for e in events:
+        if e["kind"] == "frame-shift":
+            shifts.setdefault(e["view"], []).append(float(np.hypot(e["dx_px"], e["dy_px"])))
+    if shifts:
+        from ..quality import warning
+        warnings.append(warning(
+            "frame-shifts",
+            "track: the whole picture jolted (a C-arm's vibration, the head moving) in "
+            + ", ".join(f"{len(s)} frame(s) of {v} (up to {max(s):.1f} px)" for v, s in shifts.items())
+            + " (frame-shift events): the markers were followed across the jolts, but their 2-D positions, "
+              "and any 3-D point triangulated from them, carry the jolts (nothing corrects them)",
+            log, views={v: {"n_frames": len(s), "max_px": max(s)} for v, s in shifts.items()}))
     if rig is not None:
         from ..imaging.track_effects import close_stereo_loop, match_tracks_across_views, stereo_data
         from ..imaging.triangulate import lowpass_trajectories
