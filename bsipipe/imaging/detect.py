@@ -1716,14 +1716,15 @@ def detect_arrays(frame: np.ndarray, diameter_px: float, polarity: Polarity = "d
 
 # --- windows (seeded refinement and tracking) ----------------------------------------------------
 
-def _window_geometry(radius_px: float, diameter_px: float, st: DetectionSettings) -> tuple[int, int]:
-    """(half side, pad) of :func:`window_arrays`' windows for search radius ``radius_px``: a
-    window is ``2 half + 1`` square, cut ``pad`` columns wider on both sides."""
+def _window_geometry(radius_px: float, diameter_px: float, st: DetectionSettings) -> tuple[int, int, int]:
+    """(half side, pad, border) of :func:`window_arrays`' windows for search radius
+    ``radius_px``: a window is ``2 half + 1`` square, cut ``pad`` columns wider on both sides;
+    ``border``, the reach of the top-hat and its smoothing, is kept out of its core."""
     k = st.se_px(diameter_px)
     sg = st.smooth_px(diameter_px)
     b = k // 2 + int(math.ceil(3 * sg)) + 1
     half = int(math.ceil(radius_px)) + b + int(math.ceil(diameter_px))
-    return half, 2 * (k // 2) + len(_gauss_kernel(float(sg))) // 2
+    return half, 2 * (k // 2) + len(_gauss_kernel(float(sg))) // 2, b
 
 
 def window_strip_px(n: int, radius_px: float, diameter_px: float,
@@ -1731,7 +1732,7 @@ def window_strip_px(n: int, radius_px: float, diameter_px: float,
     """Pixels :func:`window_arrays` filters for ``n`` windows of largest radius
     ``radius_px``: against a frame's, the cost of searching the windows instead of the whole
     frame."""
-    half, pad = _window_geometry(radius_px, diameter_px, settings)
+    half, pad, _ = _window_geometry(radius_px, diameter_px, settings)
     return (2 * half + 1) * n * (2 * half + 1 + 2 * pad)
 
 
@@ -1763,8 +1764,7 @@ def window_arrays(frame: np.ndarray, centres_xy, radii_px, diameter_px: float, p
         return {k: np.zeros(0) for k in COLUMNS}
     k = st.se_px(diameter_px)
     sg = st.smooth_px(diameter_px)
-    half, pad = _window_geometry(float(radii.max()), diameter_px, st)
-    b = k // 2 + int(math.ceil(3 * sg)) + 1
+    half, pad, b = _window_geometry(float(radii.max()), diameter_px, st)
     W = 2 * half + 1
     n = len(c)
     icx = np.rint(c[:, 0]).astype(int)

@@ -270,6 +270,16 @@ def _assign(markers: list[_Marker], pred: np.ndarray, gates: np.ndarray, cand_xy
     return match, np.where(allowed, d2, np.inf)
 
 
+def _apart(xy: np.ndarray, points, radius) -> np.ndarray:
+    """(n,) True for each of ``xy`` (n, 2) farther than ``radius`` (a number, or one per
+    point) from every one of ``points`` (k, 2; none: all True)."""
+    pts = np.asarray(points, float).reshape(-1, 2)
+    if len(pts) == 0 or len(xy) == 0:
+        return np.ones(len(xy), bool)
+    r = np.broadcast_to(np.asarray(radius, float), (len(pts),))
+    return (((xy[:, None, :] - pts[None, :, :]) ** 2).sum(-1) > r[None, :] ** 2).all(axis=1)
+
+
 def _ambiguous_pairs(match: np.ndarray, d2: np.ndarray, margin2: float) -> list[tuple[int, int]]:
     """Pairs of matched markers whose swapped matching costs less than ``margin2`` more."""
     idx = np.flatnonzero(match >= 0)
@@ -378,11 +388,9 @@ def _search_frame(img, f: int, live: list[_Marker], pred, gates, diameter_px: fl
         # instrument that hid it, than the marker (it is taken a frame later, whole)
         compat = _looks_like(live, c["amplitude"], c["sigma_px"], settings,
                              whole=[m.lost_since is not None for m in live])
-        if taken is not None and len(taken) and len(cxy):
+        if taken is not None:
             # candidates other markers already hold in this frame (within a diameter) are not free
-            free = ((cxy[:, None, :] - np.asarray(taken, float)[None, :, :]) ** 2).sum(-1).min(axis=1) \
-                > max(1.0, diameter_px) ** 2
-            compat &= free[None, :]
+            compat &= _apart(cxy, taken, max(1.0, diameter_px))[None, :]
         return c, cxy, *_assign(live, pred, gates, cxy, compat, miss_cost=1.0)
 
     cand, cxy, match, d2 = first_pass(pred)
@@ -542,7 +550,7 @@ def _second_look(frame: int, img, live: list[_Marker], pred, gates, cand: dict, 
         return cand, match, d2, weak
     taken = np.column_stack([cand["x_px"], cand["y_px"]])[match[match >= 0]]
     if len(taken):
-        free = (((xy[:, None, :] - taken[None, :, :]) ** 2).sum(axis=-1) > (0.5 * diameter_px) ** 2).all(axis=1)
+        free = _apart(xy, taken, 0.5 * diameter_px)
         if not free.all():
             more = {c: v[free] for c, v in more.items()}
             xy = xy[free]
@@ -654,11 +662,7 @@ def _track_swept(frames, diameter_px, polarity, *, view, fps, roi, detection, se
         xy = np.column_stack([d["x_px"], d["y_px"]])
         if len(xy) == 0:
             return
-        free = np.ones(len(xy), bool)
-        if len(found_xy):
-            free &= (((xy[:, None, :] - found_xy[None, :, :]) ** 2).sum(-1) > excl ** 2).all(axis=1)
-        if len(lost):
-            free &= (((xy[:, None, :] - lost_pred[None, :, :]) ** 2).sum(-1) > lost_gate[None, :] ** 2).all(axis=1)
+        free = _apart(xy, found_xy, excl) & _apart(xy, lost_pred, lost_gate)
         idx = []
         for j in np.flatnonzero(free):
             m = _Marker(str(len(markers)), xy[j].copy(), f)
