@@ -886,14 +886,11 @@ def _track_auto(frames, diameter_px, polarity, *, view, fps, roi, detection, set
     # trackpy parity: every frame detected whole as trackpy's locate does, then linked
     dets: list[dict] = []
     times = {}
-
-    def detect(img):
-        return {c: v.to_numpy(float) for c, v in detect_markers(img, diameter_px, polarity, roi, detection).items()}
     for k, fr in enumerate(frames):
         img, f, t = _unpack(fr, k, fps)
         if on_frame is not None:
             on_frame(f, img)
-        d = detect(img)
+        d = {c: v.to_numpy(float) for c, v in detect_markers(img, diameter_px, polarity, roi, detection).items()}
         d["frame"] = np.full(len(d["x_px"]), f)
         times[f] = t
         dets.append(d)
