@@ -24,6 +24,12 @@ WARNING.  A warning is a dict ``{"code": ..., "message": ..., **details}``; the 
     ``track``: the whole picture jolted between frames in a view (``frame-shift`` events: a
     C-arm's vibration, the head moving): the tracks follow the jolts, but the positions carry
     them, and so do the 3-D points triangulated from them.
+``missing-frames``
+    ``track``: numbers missing from a view's frame files (``frame_0057.png`` absent among
+    ``frame_0000.png`` ... ``frame_0199.png``, or a gap in a DICOM series' InstanceNumbers):
+    the recorder dropped them.  Their indices are left empty, so the later frames keep their
+    numbers and still pair with the other view's frames by index (counting the files would
+    pair every later frame with the other view's next one, a time offset from there on).
 ``large-ray-gap``
     Triangulated points whose two back-projected rays pass further apart than five times the
     median ray gap of their marker (and at least :data:`RAY_GAP_FLOOR_MM`) or than a stated

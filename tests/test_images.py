@@ -313,3 +313,37 @@ def test_lossy_compression_of_a_source(tmp_path):
     assert found.get("mp4v", "").startswith("video codec ")          # OpenCV writes mp4v as FMP4
     assert found.get("FFV1", None) is None and found.get("HFYU", None) is None
     assert {"MJPG", "mp4v"} <= set(found)
+
+
+def test_a_frame_missing_from_the_numbering_keeps_its_index(tmp_path):
+    """A recorder that drops a frame leaves a gap in its files' counter: the later frames keep
+    the counter's indices (so they still pair with the other view's frames), the gap's index
+    is left out.  Counters that are not frame counts (a time stamp in the name), names that
+    differ around the number, and a constant step (every other frame saved) are counted."""
+    def folder(name, files):
+        d = tmp_path / name
+        d.mkdir()
+        for k, f in enumerate(files):
+            cv2.imwrite(str(d / f), np.full((6, 7), k, np.uint8))
+        return d
+
+    d = folder("gap", [f"frame_{k:04d}.png" for k in (1, 2, 3, 5, 6, 7)])
+    assert [f.index for f in iter_frames(d)] == [0, 1, 2, 4, 5, 6]
+    assert [f.index for f in iter_frames(d, workers=3)] == [0, 1, 2, 4, 5, 6]
+    assert [int(f.image[0, 0]) for f in iter_frames(d)] == list(range(6))
+    assert [f.index for f in iter_frames(str(d / "frame_000[2-6].png"))] == [0, 1, 3, 4]
+    step = folder("step", [f"f{k}.png" for k in (0, 2, 4, 8, 10)])
+    assert [f.index for f in iter_frames(step)] == [0, 1, 2, 4, 5]
+    every_other = folder("even", [f"f{k}.png" for k in (0, 2, 4, 6)])
+    assert [f.index for f in iter_frames(every_other)] == [0, 1, 2, 3]
+    stamps = folder("stamps", [f"img_{ms}.png" for ms in (1000, 1501, 1999, 2502, 3000)])
+    assert [f.index for f in iter_frames(stamps)] == [0, 1, 2, 3, 4]
+    mixed = folder("mixed", ["a1.png", "a2.png", "b4.png"])
+    assert [f.index for f in iter_frames(mixed)] == [0, 1, 2]
+    # a DICOM series in InstanceNumber order: a missing instance is a missing frame
+    imgs = [_ramp(dtype=np.uint16, seed=s) for s in range(3)]
+    e = tmp_path / "series"
+    e.mkdir()
+    for name, k in (("u9.dcm", 1), ("u3.dcm", 2), ("u5.dcm", 4)):
+        _series_file(e / name, imgs[[1, 2, 4].index(k)], InstanceNumber=k)
+    assert [f.index for f in iter_frames(e)] == [0, 1, 3]

@@ -179,6 +179,43 @@ def test_cli_warns_of_a_jolting_picture(tmp_path):
             assert "frame-shifts" not in codes
 
 
+def test_cli_a_dropped_frame_file_keeps_the_numbering(tmp_path):
+    """``bsipipe track`` on frames f000..f011 with f005.png missing (the recorder dropped it):
+    frame 5's rows are empty (status missing-frame), the later frames keep their numbers and
+    times (frame 6 at 3 s at 2 frames/s), the markers are followed across the gap, a
+    ``missing-frames`` warning names the frame, and XMALab's 2-D file keeps a blank row for
+    it."""
+    import cv2
+    frames, truth = crossing_sequence(n=12)
+    d = tmp_path / "frames"
+    d.mkdir()
+    for k, img in enumerate(frames):
+        if k != 5:
+            cv2.imwrite(str(d / f"f{k:03d}.png"), img)
+    seeds = tmp_path / "seeds.csv"
+    pd.DataFrame([("cam1", m, *truth[0, j]) for j, m in enumerate("ABC")],
+                 columns=["view", "marker", "x_px", "y_px"]).to_csv(seeds, index=False)
+    out = tmp_path / "out"
+    r = CliRunner().invoke(cli, ["-q", "track", "--view", f"cam1={d}", "--seeds", str(seeds), "--diameter-px", "4",
+                                 "--fps", "2", "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    t = pd.read_csv(out / "markers2d.csv")
+    assert t["frame"].tolist() == [k for k in range(12) for _ in range(3)]
+    gone = t[t["frame"] == 5]
+    assert (gone["status"] == "missing-frame").all() and not gone["found"].any() and gone["x_px"].isna().all()
+    assert (t.loc[t["frame"] != 5, "status"] != "missing-frame").all()
+    assert t.loc[t["frame"] == 6, "time_s"].eq(3.0).all() and t.loc[t["frame"] == 5, "time_s"].eq(2.5).all()
+    j = t["marker"].map({"A": 0, "B": 1, "C": 2}).to_numpy()
+    err = np.hypot(t["x_px"] - truth[t["frame"], j, 0], t["y_px"] - truth[t["frame"], j, 1])
+    late = (t["frame"] > 5).to_numpy() & t["found"].to_numpy()
+    assert late.sum() >= 15 and err[late].max() < 0.5
+    w = [w for w in json.loads((out / "track.json").read_text())["warnings"] if w["code"] == "missing-frames"]
+    assert len(w) == 1 and w[0]["frames"] == {"cam1": [5]}
+    x2 = read_xmalab_2d(out / "xmalab_2d.csv")
+    assert sorted(x2["frame"].unique()) == list(range(12))
+    assert x2.loc[x2["frame"] == 5, ["x_px", "y_px"]].isna().all().all()
+
+
 def test_automatic_mode_names_tracks():
     """Without seeds the whole frame is searched for new markers (here in frames 0 and 11,
     the last) and each track in its window between; the three beads become three tracks

@@ -249,3 +249,34 @@ def test_stereo_fit_with_known_offset_matches_truth():
     # PCHIP through 10 Hz samples of a 0.15 Hz, <= 3 mm motion: its slopes are second order,
     # so the error is about A (omega h)^3 = 3 mm * (2 pi 0.15 * 0.1)^3 = 2.5 um
     assert np.abs(p[["x_mm", "y_mm", "z_mm"]].to_numpy() - truth).max() < 5e-3
+
+
+def test_a_dropped_frame_keeps_the_later_frames_paired():
+    """cam2's recorder dropped frame 37 (no clock offset).  Counting its files pairs each
+    later cam2 frame with cam1's next one, a 0.1 s offset from there on: the loop then names
+    a view-time-offset for the whole sequence, and the 3-D points are off.  With the frame's
+    index left empty (``iter_frames`` reads it from the file names) the views pair as
+    recorded: no effect is named and the ray gap is the noise's."""
+    cams = two_carms()
+    V = views_from_cameras(cams)
+    tab, pos = _moving_tracks(cams, offset_s=0.0, seed=13)
+    b2 = tab["view"] == "cam2"
+    numbered = tab[~(b2 & (tab["frame"] == 37))].copy()
+    counted = numbered.copy()
+    later = (counted["view"] == "cam2") & (counted["frame"] > 37)
+    counted.loc[later, "frame"] -= 1
+    counted.loc[later, "time_s"] = counted.loc[later, "frame"] / 10.0
+    out = {}
+    for name, t in (("numbered", numbered), ("counted", counted)):
+        loop, fit, _ = close_stereo_loop(stereo_data(t, (V["cam1"], V["cam2"])))
+        p = fit.points.dropna(subset=["x_mm"])
+        X = pos(p["frame"].to_numpy() / 10.0)
+        truth = X[np.arange(len(p)), p["marker"].str[1:].astype(int).to_numpy() - 1]
+        err = np.linalg.norm(p[["x_mm", "y_mm", "z_mm"]].to_numpy() - truth, axis=1)
+        out[name] = ([s["effect"] for s in loop["steps"]], loop["baseline"]["ray_gap_rms_mm"],
+                     float(np.sqrt(np.mean(err ** 2))))
+    print(out)
+    assert out["numbered"][0] == [] and out["numbered"][2] < 0.02
+    assert 37 not in set(stereo_data(numbered, (V["cam1"], V["cam2"])).frames)
+    assert out["counted"][1] > 3 * out["numbered"][1]
+    assert out["counted"][2] > 3 * out["numbered"][2]

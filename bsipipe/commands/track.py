@@ -428,6 +428,23 @@ def decode_workers() -> int:
     return min(4, (os.cpu_count() or 1) + 1)
 
 
+def _missing_frame_rows(table: pd.DataFrame, missing: dict[str, list[int]], fps: float | None,
+                        views: list[str]) -> pd.DataFrame:
+    """``table`` with a row for every marker of a view in each of its ``missing`` frames (not
+    found, status ``missing-frame``, timed at frame / ``fps`` where a rate is given), in
+    view and frame order."""
+    add = []
+    for v, fr in missing.items():
+        ms = pd.unique(table.loc[table["view"] == v, "marker"])
+        f = np.repeat(np.asarray(fr, np.int64), len(ms))
+        add.append(pd.DataFrame({"view": v, "frame": f, "marker": np.tile(ms, len(fr)),
+                                 "time_s": f / fps if fps else np.nan, "found": False, "status": "missing-frame"}))
+    out = pd.concat([table, *add], ignore_index=True)
+    out["found"] = out["found"].astype(bool)
+    rank = out["view"].map({v: i for i, v in enumerate(views)})
+    return out.iloc[np.lexsort((out["frame"].to_numpy(), rank.to_numpy()))].reset_index(drop=True)
+
+
 def _track_views(cfg, views, seed_df, d: float, det, tk, progress: bool):
     """Track every view (:func:`bsipipe.imaging.track.track_view`), frames decoded ahead on
     threads (a pool for a folder of frames, :func:`decode_workers`; :func:`prefetched` for
@@ -554,7 +571,27 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     cross_view = None
     warnings: list[dict] = []
     counts = {v: info[v]["n_frames"] for v in views}
-    if len(set(counts.values())) > 1:
+    missing = {}
+    for v, g in table.groupby("view", sort=False):
+        fr = np.unique(g["frame"].to_numpy())
+        if len(fr) and fr[-1] - fr[0] + 1 > len(fr):
+            missing[v] = sorted(set(range(int(fr[0]), int(fr[-1]) + 1)) - set(fr.tolist()))
+    if missing:
+        # a frame the recorder dropped (its number missing from the files' names): its index
+        # stays empty, so the frames after it still pair with the other view's by index; the
+        # 2-D table keeps a row per frame and marker (not found, status missing-frame)
+        from ..quality import warning
+        warnings.append(warning(
+            "missing-frames",
+            "track: frames missing from the numbering of the files ("
+            + "; ".join(f"{v}: {len(m)} frame(s), {', '.join(map(str, m[:10]))}{', ...' if len(m) > 10 else ''}"
+                        for v, m in missing.items())
+            + "): their rows are empty (status missing-frame, no 3-D point), and the later frames keep their "
+              "numbers and pair with the other view's frames of the same number",
+            log, frames={v: m for v, m in missing.items()}))
+        table = _missing_frame_rows(table, missing, cfg.fps, views)
+    last = {v: int(table.loc[table["view"] == v, "frame"].max()) for v in views}
+    if len(set(counts.values())) > 1 and len(set(last.values())) > 1:
         # e.g. a video cut short within its header's tolerance, or a frame file missing: the
         # views' frames are paired by index (and time stamps), so the shorter view's end is
         # where stereo stops

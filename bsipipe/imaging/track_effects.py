@@ -108,9 +108,14 @@ def _view_arrays(cols: dict, markers: list[str], frames: np.ndarray):
         lf = len(cf) - 1 - np.unique(cf[::-1], return_index=True)[1]
         xy.reshape(-1, 2)[cf[lf]] = np.column_stack([cols["x_px"][keep][found][lf], cols["y_px"][keep][found][lf]])
     found = np.isfinite(xy).all(axis=2)
-    # the frames next to a change between found and lost: partly hidden there
+    # the frames next to a change between found and lost: partly hidden there (a frame the
+    # recorder dropped, status missing-frame, hides nothing)
     edge = np.zeros_like(found)
     ch = found[1:] != found[:-1]
+    if "missing" in cols and cols["missing"].any():
+        gone = np.zeros(F, bool)
+        gone[i[cols["missing"][keep]]] = True
+        ch &= ~(gone[1:] | gone[:-1])[:, None]
     edge[1:] |= ch
     edge[:-1] |= ch
     suspect = found & (edge | partial)
@@ -126,7 +131,8 @@ def stereo_data(table: pd.DataFrame, views: tuple[ViewGeometry, ViewGeometry]) -
             "time_s": table["time_s"].to_numpy(dtype=float), "x_px": table["x_px"].to_numpy(dtype=float),
             "y_px": table["y_px"].to_numpy(dtype=float),
             "found": np.asarray(table["found"].to_numpy(), dtype=bool),
-            "partial": (table["status"] == "partial").to_numpy(dtype=bool)}
+            "partial": (table["status"] == "partial").to_numpy(dtype=bool),
+            "missing": (table["status"] == "missing-frame").to_numpy(dtype=bool)}
     in_a, in_b = (view == a).to_numpy(), (view == b).to_numpy()
     ma = list(pd.unique(cols["marker"][in_a]))            # in order of appearance
     mb = set(pd.unique(cols["marker"][in_b]))

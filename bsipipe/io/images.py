@@ -43,7 +43,9 @@ class Frame(NamedTuple):
     """One frame of a source.
 
     index : int
-        0-based position in the source (after sorting for folders).
+        0-based position in the source (after sorting for folders); where the files' frame
+        counter skips numbers (a dropped frame), the counter's, so the skipped indices stay
+        empty (:func:`frame_numbers`).
     name : str
         File name for folders/globs, ``"<file>#<index>"`` inside a multi-frame file.
     image : ndarray, shape (h, w)
@@ -112,6 +114,70 @@ def _by_name(source: str | os.PathLike) -> list[Path]:
     return sorted(files, key=lambda q: natural_key(q.name))
 
 
+#: The last number in a file name, with the text before and after it (``frame_0057.png``).
+_COUNTER = re.compile(r"^(.*?)(\d+)(\D*)$")
+
+
+def frame_numbers(numbers) -> list[int] | None:
+    """Frame indices from a source's frame counter (the numbers in its file names, or a
+    DICOM series' InstanceNumbers), in order, where some numbers are missing: a frame the
+    recorder dropped or a file deleted leaves its index empty instead of shifting every
+    later frame by one (which pairs the views' frames wrongly from there on).
+
+    Index = (number - first) / step, the step being the numbers' greatest common difference
+    (every other frame saved is not a gap).  None where the indices would be the ranks
+    anyway (no gap), where the numbers do not increase strictly, or where more numbers are
+    missing than half the files present (a counter that does not count frames, e.g. a time
+    stamp in the name).
+
+    >>> frame_numbers([1, 2, 3, 5, 6])
+    [0, 1, 2, 4, 5]
+    >>> frame_numbers([10, 20, 30, 50]), frame_numbers([0, 1, 2]), frame_numbers([3, 900, 2000])
+    ([0, 1, 2, 4], None, None)
+    """
+    import math
+    nums = [int(v) for v in numbers]
+    n = len(nums)
+    if n < 2 or any(b <= a for a, b in zip(nums, nums[1:])):
+        return None
+    step = 0
+    for a, b in zip(nums, nums[1:]):
+        step = math.gcd(step, b - a)
+    idx = [(v - nums[0]) // step for v in nums]
+    missing = idx[-1] + 1 - n
+    if missing == 0 or missing > max(1, n // 2):
+        return None
+    return idx
+
+
+def _name_numbers(files: list[Path]) -> list[int] | None:
+    """The frame counter of each file name, where every name is the same text around its
+    last number (``frame_0001.png`` ... ``frame_0200.png``); else None."""
+    parts = [_COUNTER.match(f.name) for f in files]
+    if len(files) < 2 or any(m is None for m in parts):
+        return None
+    if len({(m.group(1), m.group(3)) for m in parts}) != 1:
+        return None
+    return [int(m.group(2)) for m in parts]
+
+
+def _frame_index_of(files: list[Path], series: "_Series | None") -> dict | None:
+    """Each file's frame index where the source's counter has gaps (:func:`frame_numbers`),
+    else None (frames are counted); a gap is logged."""
+    if len(files) < 2 or any(f.suffix.lower() in VIDEO_SUFFIXES for f in files):
+        return None
+    nums = series.numbers if series is not None else _name_numbers(files)
+    idx = frame_numbers(nums) if nums is not None else None
+    if idx is None:
+        return None
+    have = set(idx)
+    gone = [i for i in range(idx[-1] + 1) if i not in have]
+    log.debug("%s: %d frame(s) missing from the numbering of its %d files (frame %s): their indices are left "
+              "empty", files[0].parent, len(gone), len(files), ", ".join(str(i) for i in gone[:10])
+                + (", ..." if len(gone) > 10 else ""))
+    return dict(zip(files, idx))
+
+
 def _source_files(source: str | os.PathLike) -> tuple[list[Path], _Series | None]:
     """The files of a source in order (:func:`list_image_files`) and, for a DICOM series, its
     :class:`_Series` (the files' own times); the series' headers are read once."""
@@ -132,6 +198,7 @@ class _Series(NamedTuple):
     files: tuple
     times: tuple | None
     order: str          # what the order and the times were taken from, in words
+    numbers: tuple | None = None   # the InstanceNumbers, in that order (None: ordered otherwise)
 
 
 def _dicom_seconds(ds, date_kw: str, time_kw: str) -> float | None:
@@ -242,7 +309,8 @@ def _read_series(files: list[Path]) -> _Series | None:
             # instance numbers count the frames (a gap is a frame missing); else the rank
             step = (np.asarray(inst)[order] - inst[order[0]]) if how == "InstanceNumber" else np.arange(n)
             times, how = tuple(float(i) * v / 1000.0 for i in step), f"{how}; times from FrameTime {v:g} ms"
-    return _Series(tuple(files[i] for i in order), times, how)
+    numbers = tuple(int(inst[i]) for i in order) if how.startswith("InstanceNumber") else None
+    return _Series(tuple(files[i] for i in order), times, how, numbers)
 
 
 # --- pixel conversion ---------------------------------------------------------------------
@@ -631,7 +699,9 @@ def iter_frames(source: str | os.PathLike, *, dtype=None, channel: int | None = 
     ``source`` is a folder of image files or a glob (sorted by name, see
     :func:`natural_key`; a DICOM series is such a folder), a multi-page TIFF, a
     multi-frame DICOM, a video (AVI, MP4, ...), or a single image (one frame).  Frame
-    indices run over the whole source.  With ``check_size`` every frame must have the
+    indices run over the whole source; where the files' names (or a DICOM series'
+    InstanceNumbers) count the frames and skip some numbers, a skipped number's index is
+    left out (:func:`frame_numbers`).  With ``check_size`` every frame must have the
     size and the pixel type (bit depth) of the first; a difference is an InputError naming the
     file and frame.  ``hashes`` (a dict) receives the sha256 of every file read, keyed by
     ``str(path)`` as :func:`bsipipe.provenance.input_hashes` keys them: an image file's from
@@ -645,10 +715,13 @@ def iter_frames(source: str | os.PathLike, *, dtype=None, channel: int | None = 
     times = dict(zip(series.files, series.times)) if series is not None and series.times is not None else None
     if series is not None:
         log.debug("%s: DICOM series of %d files, in the order of %s", source, len(files), series.order)
+    numbered = _frame_index_of(files, series)
     shape0 = None
     first = None
     index = 0
     for f, (name, img, t, k) in _files_in_order(files, dtype, channel, hashes, int(workers)):
+        if numbered is not None and k == 0:
+            index = max(index, numbered[f])     # a frame missing from the numbering keeps its index
         if check_size:
             if shape0 is None:
                 shape0, dtype0, first = img.shape, img.dtype, name
