@@ -34,8 +34,9 @@ background is not white noise); :math:`q` is large where the motion is abrupt, a
 smoother then follows the data.  A frame where the marker was not found is bridged by the
 model but keeps no smoothed value (the table says where the marker was seen).
 
-Grids cover :math:`\log_{10} q \in [-6, 6]` (steps of 0.25) and :math:`s \in [0.5, 4]` (13
-steps), searched coarse to fine (every 4th q and 2nd s, then the full grid near each track's
+Grids cover :math:`\log_{10} q \in [-6, 6]` (steps of 0.25) and :math:`s \in [0.5, 32]` (25
+steps of :math:`2^{1/4}`; a lossy codec's frames have lost the pixel noise the SNR is measured
+from, and their centres scatter up to about 20 times :math:`0.798/\mathrm{SNR}`), searched coarse to fine (every 4th q and 2nd s, then the full grid near each track's
 best).  Each pass is one Kalman recursion over time whose every step is a few vectorised
 NumPy operations on all tracks under all their grid models at once (and on all views that
 share a clock): tracks' measurements are shared by their models, not copied per model, so a
@@ -53,7 +54,7 @@ import pandas as pd
 #: The Cramer-Rao factor: per-axis sd of a Gaussian spot's centre = CRB_FACTOR / SNR.
 CRB_FACTOR = float(np.sqrt(2.0 / np.pi))
 LOG_Q_GRID = np.arange(-6.0, 6.0001, 0.25)
-SCALE_GRID = np.geomspace(0.5, 4.0, 13)
+SCALE_GRID = np.geomspace(0.5, 32.0, 25)
 
 
 @dataclass(frozen=True)
