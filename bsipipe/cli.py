@@ -270,6 +270,10 @@ def track(config, out, **opts) -> None:
             extra = ""
             if s["effect"] == "view-time-offset":
                 extra = f", offset {s['params'].get('view_time_offset_s', float('nan')):+.4f} s"
+            elif s["effect"] == "view-clock-drift":
+                extra = (f", offset {s['params'].get('view_time_offset_s', float('nan')):+.4f} s at the first frame, "
+                         f"B's frame interval {100 * s['params'].get('view_clock_drift', float('nan')):+.3f} % "
+                         f"against A's")
             click.echo(f"  loop: {s['effect']}{extra}: ray gap RMS {s['ray_gap_rms_mm_before']:.4f} -> "
                        f"{s['ray_gap_rms_mm_after']:.4f} mm, reprojection RMS {s['reprojection_rms_px_before']:.3f} -> "
                        f"{s['reprojection_rms_px_after']:.3f} px")

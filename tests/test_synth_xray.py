@@ -569,3 +569,16 @@ def test_frame_jolt_moves_the_anatomy_and_its_truth_together():
         truth = np.array([[r["x_px"], r["y_px"]] for r in rows if r["frame"] == k])
         dist, _ = cKDTree(np.column_stack([d["x_px"], d["y_px"]])).query(truth)
         assert np.median(dist) < 0.3
+
+
+def test_view_clock_drift_times_cam2s_frames():
+    """``effects.view_clock_drift``: cam2's frame i is taken at i / fps (1 + drift) + offset
+    (cam1's at i / fps); the truth states both, and its per-view positions follow those times."""
+    tw = Twin(_cfg(calibration={"views": 0, "stereo_views": 0}, sequence={"fps": 2.0, "n_frames": 7},
+                   effects={"view_time_offset_s": 0.1, "view_clock_drift": 0.01}))
+    i = np.arange(7)
+    assert np.allclose(tw.times["cam1"], i / 2.0)
+    assert np.allclose(tw.times["cam2"], i / 2.0 * 1.01 + 0.1)
+    seq = tw.truth()["sequence"]
+    assert seq["view_clock_drift"] == 0.01 and seq["view_time_offset_s"] == 0.1
+    assert np.allclose(seq["times_s"]["cam2"], tw.times["cam2"])

@@ -110,8 +110,8 @@ def test_signed_ray_gap_of_a_known_offset():
     assert abs(abs(g[0]) - 0.1) < 2e-3   # perspective: the point is 640 mm from both sources
 
 
-def _moving_tracks(cams, offset_s=0.0, n_frames=80, fps=10.0, noise_px=0.05, seed=3, swap=None):
-    """2-D tracks of 6 markers on smooth 3-D paths, B's frame i taken at i/fps + offset_s."""
+def _moving_tracks(cams, offset_s=0.0, n_frames=80, fps=10.0, noise_px=0.05, seed=3, swap=None, drift=0.0):
+    """2-D tracks of 6 markers on smooth 3-D paths, B's frame i taken at i/fps (1 + drift) + offset_s."""
     rng = np.random.default_rng(seed)
     P0 = rng.uniform(-20, 20, (6, 3))
     amp = rng.uniform(1.0, 3.0, (6, 3))
@@ -122,7 +122,7 @@ def _moving_tracks(cams, offset_s=0.0, n_frames=80, fps=10.0, noise_px=0.05, see
 
     rows = []
     t = np.arange(n_frames) / fps
-    for v, tt in (("cam1", t), ("cam2", t + offset_s)):
+    for v, tt in (("cam1", t), ("cam2", t * (1 + drift) + offset_s)):
         X = pos(tt)
         for i in range(n_frames):
             u = cams[v].project(X[i]) + rng.normal(0, noise_px, (6, 2))
@@ -212,7 +212,8 @@ def test_jolts_of_one_view_are_not_taken_for_a_clock_offset():
     print(est.get("offset_rejected_s"), est.get("mean_sq_gap_mm2"))
     assert est["view_time_offset_s"] == 0.0 and est.get("offset_rejected_s", 0.0) != 0.0
     loop, _, _ = close_stereo_loop(d)
-    assert "view-time-offset" not in [s["effect"] for s in loop["steps"]]
+    names = [s["effect"] for s in loop["steps"]]
+    assert "view-time-offset" not in names and "view-clock-drift" not in names
 
 
 def test_lowpass_keeps_raw_and_respects_gaps():
@@ -254,7 +255,8 @@ def test_stereo_fit_with_known_offset_matches_truth():
 def test_a_dropped_frame_keeps_the_later_frames_paired():
     """cam2's recorder dropped frame 37 (no clock offset).  Counting its files pairs each
     later cam2 frame with cam1's next one, a 0.1 s offset from there on: the loop then names
-    a view-time-offset for the whole sequence, and the 3-D points are off.  With the frame's
+    a clock effect for the whole sequence (a drift: a ramp is the nearest it has to a step),
+    and the 3-D points are off.  With the frame's
     index left empty (``iter_frames`` reads it from the file names) the views pair as
     recorded: no effect is named and the ray gap is the noise's."""
     cams = two_carms()
@@ -278,5 +280,40 @@ def test_a_dropped_frame_keeps_the_later_frames_paired():
     print(out)
     assert out["numbered"][0] == [] and out["numbered"][2] < 0.02
     assert 37 not in set(stereo_data(numbered, (V["cam1"], V["cam2"])).frames)
+    assert out["counted"][0] and set(out["counted"][0]) <= {"view-time-offset", "view-clock-drift"}
     assert out["counted"][1] > 3 * out["numbered"][1]
-    assert out["counted"][2] > 3 * out["numbered"][2]
+    assert out["counted"][2] > 2 * out["numbered"][2]
+
+
+@pytest.mark.parametrize("drift,offset", [(0.006, 0.05), (-0.004, -0.1)])
+def test_view_clock_drift_found_and_estimated(drift, offset):
+    """B's frame clock runs 0.6 % slow (0.4 % fast) and starts 0.05 s late (0.1 s early): the
+    offset between the views' frames changes by 0.12 s (0.08 s) over the 20 s.  The loop
+    names view-clock-drift (a constant offset leaves a gap that grows with time), estimates
+    the rate within 5 % and the offset within 5 ms, and the ray gap falls to the noise's."""
+    cams = two_carms()
+    V = views_from_cameras(cams)
+    tab, _ = _moving_tracks(cams, offset_s=offset, drift=drift, n_frames=200, seed=21)
+    loop, fit, _ = close_stereo_loop(stereo_data(tab, (V["cam1"], V["cam2"])))
+    names = [s["effect"] for s in loop["steps"]]
+    steps = {s["effect"]: s for s in loop["steps"]}
+    print(names, fit.params.get("view_clock_drift"), fit.params.get("view_time_offset_s"),
+          [(s["ray_gap_rms_mm_before"], s["ray_gap_rms_mm_after"]) for s in loop["steps"]])
+    assert "view-clock-drift" in names and "identity-swap" not in names
+    assert abs(fit.params["view_clock_drift"] - drift) < 0.05 * abs(drift)
+    assert abs(fit.params["view_time_offset_s"] - offset) < 0.005
+    still, _ = _moving_tracks(cams, offset_s=0.0, n_frames=200, seed=21)
+    noise = close_stereo_loop(stereo_data(still, (V["cam1"], V["cam2"])))[0]["final"]["ray_gap_rms_mm"]
+    assert loop["final"]["ray_gap_rms_mm"] < 1.2 * noise < steps["view-clock-drift"]["ray_gap_rms_mm_before"]
+
+
+def test_a_constant_offset_is_not_taken_for_a_drift():
+    """A constant 0.12 s offset over 200 frames: view-time-offset, and no rate on top of it."""
+    cams = two_carms()
+    V = views_from_cameras(cams)
+    tab, _ = _moving_tracks(cams, offset_s=0.12, n_frames=200, seed=22)
+    loop, fit, _ = close_stereo_loop(stereo_data(tab, (V["cam1"], V["cam2"])))
+    names = [s["effect"] for s in loop["steps"]]
+    print(names, [r.get("effect") and (r["effect"], r.get("delta_bic"), r.get("reason")) for rd in loop.get("tried", []) for r in rd])
+    assert names == ["view-time-offset"]
+    assert abs(fit.params["view_time_offset_s"] - 0.12) < 0.002

@@ -685,7 +685,8 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
             sdata = stereo_data(sub, vpair)
             del sub
             fit = stereo_fit(sdata, StereoSpec(occlusion=fit.spec.occlusion),
-                             fixed_offset_s=fit.params.get("view_time_offset_s"), max_offset_s=cfg.max_offset_s)
+                             fixed_offset_s=fit.params.get("view_time_offset_s"),
+                             fixed_drift=fit.params.get("view_clock_drift"), max_offset_s=cfg.max_offset_s)
             raw = points3d.set_index(["frame", "marker"])[["x_mm", "y_mm", "z_mm", "ray_gap_mm"]]
             points3d = fit.points.copy()
             if time_unit == "frame":

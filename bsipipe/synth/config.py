@@ -221,6 +221,8 @@ class SequenceConfig(StrictModel):
 class EffectsConfig(StrictModel):
     occlusion: bool = Field(True, description="two implanted markers pass behind the indentor, one in each view")
     view_time_offset_s: float = Field(0.0, ge=-5, le=5, description="cam2's clock minus cam1's")
+    view_clock_drift: float = Field(0.0, ge=-0.05, le=0.05, description="cam2's frame interval over cam1's, minus "
+                                    "one: cam2's frame i is taken at i / fps * (1 + drift) + view_time_offset_s")
     moving_reference: bool = Field(False, description="reference R2 sits on the brain and moves with it")
     frame_jolt_px: int = Field(0, ge=0, le=20, description="in every sequence frame after the first, the anatomy "
                                "(everything but the intensifier's field) is shifted by a random whole number of px "

@@ -830,10 +830,11 @@ class Twin:
         n_design = int(math.floor(end * sq.fps + 1e-9)) + 1
         self.n_frames = sq.n_frames or n_design
         off = self.cfg.effects.view_time_offset_s
+        rate = 1.0 + self.cfg.effects.view_clock_drift
         t = np.arange(self.n_frames) / sq.fps
         td = np.arange(max(n_design, self.n_frames)) / sq.fps
-        self.times = {"cam1": t, "cam2": t + off}
-        self.design_times = {"cam1": td, "cam2": td + off}
+        self.times = {"cam1": t, "cam2": t * rate + off}
+        self.design_times = {"cam1": td, "cam2": td * rate + off}
 
     # --- calibration -------------------------------------------------------------------------
     def calibration_images(self) -> Iterator[tuple[str, np.ndarray]]:
@@ -1063,6 +1064,7 @@ class Twin:
                 "fps": cfg.sequence.fps, "n_frames": self.n_frames,
                 "times_s": {v: self.times[v].tolist() for v in VIEWS},
                 "view_time_offset_s": cfg.effects.view_time_offset_s,
+                "view_clock_drift": cfg.effects.view_clock_drift,
                 "markers": {m.name: {"kind": m.kind, "diameter_mm": m.diameter_mm, "moves": m.moves,
                                      "position0_mm": m.position0_mm.tolist()} for m in sc.markers},
                 "trajectories_mm": {m.name: traj["cam1"][:, j].tolist() for j, m in enumerate(sc.markers)},
