@@ -23,7 +23,8 @@ WARNING.  A warning is a dict ``{"code": ..., "message": ..., **details}``; the 
 ``frame-shifts``
     ``track``: the whole picture jolted between frames in a view (``frame-shift`` events: a
     C-arm's vibration, the head moving): the tracks follow the jolts, but the positions carry
-    them, and so do the 3-D points triangulated from them.
+    them, and so do the 3-D points triangulated from them unless the stereo loop's
+    ``frame-shift`` takes them out (then ``corrected_by_loop`` is true).
 ``missing-frames``
     ``track``: numbers missing from a view's frame files (``frame_0057.png`` absent among
     ``frame_0000.png`` ... ``frame_0199.png``, or a gap in a DICOM series' InstanceNumbers):

@@ -283,11 +283,19 @@ def opencv_camera(draw):
     f = draw(st.floats(1.2, 3.0)) * max(w, h) / 2   # half field of view ~ 18-40 degrees
     K = np.array([[f, 0, w / 2 + draw(st.floats(-20, 20))], [0, f * draw(st.floats(0.98, 1.02)), h / 2], [0, 0, 1]])
     cam = Camera(K, d, np.eye(3), np.zeros(3), (w, h))
-    # the model must be a one-to-one map over the image (monotonic in the radius out to the corners)
-    r = np.linspace(0.0, 1.05 * np.hypot(w, h) / 2 / f, 200)
+    # the model must be a one-to-one map over the image: monotonic in the radius out to the
+    # corners, and reaching past them, so that every raw pixel has an ideal one (a barrel
+    # model can top out inside the image: k2 = -0.094 at f = 400 px on 640 x 480 maps no ideal
+    # radius to the corners' raw one, and undistorting them has no answer)
+    corner = np.hypot(w, h) / 2 / f
+    r = np.linspace(0.0, 2.0 * corner, 400)
     xy = np.column_stack([r, np.zeros_like(r)])
     from bsipipe.imaging.camera import opencv_distort
-    assume(np.all(np.diff(opencv_distort(xy, d)[:, 0]) > 0))
+    rd = opencv_distort(xy, d)[:, 0]
+    reach = np.flatnonzero(rd >= 1.05 * corner)
+    assume(len(reach) > 0)
+    upto = max(int(reach[0]), int(np.searchsorted(r, 1.05 * corner)))
+    assume(np.all(np.diff(rd[:upto + 1]) > 0))
     return cam
 
 

@@ -365,6 +365,10 @@ def _smooth(table: pd.DataFrame) -> tuple[pd.DataFrame, dict]:
     where there are no time stamps) and the ``smoothing`` section of ``track.json``."""
     from ..imaging.smooth import smooth_tracks
     t = table[["view", "frame", "time_s", "marker", "x_px", "y_px", "snr", "found"]].copy()
+    if "shift_x_px" in table:
+        # the loop's frame shifts (a jolting picture) are taken out before smoothing
+        t["x_px"] -= table["shift_x_px"].fillna(0.0)
+        t["y_px"] -= table["shift_y_px"].fillna(0.0)
     clock = "s"
     if t["time_s"].isna().any():
         t["time_s"] = t["frame"].astype(float)
@@ -665,6 +669,22 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
             events.append({"view": sw["view"], "frame": sw["first_frame"], "marker": a, "kind": "identity-swap",
                            "other": b, "last_frame": sw["last_frame"],
                            "detail": "names exchanged by the loop (ray gaps)"})
+        if fit.frame_shifts:
+            # each view's common shift per frame (frame-shift): a column of the 2-D table, taken
+            # out of the smoothed centres and of the 3-D points
+            sh = pd.concat([pd.DataFrame({"view": v, "frame": data.frames, "shift_x_px": o[:, 0], "shift_y_px": o[:, 1]})
+                            for v, o in fit.frame_shifts.items()]).set_index(["view", "frame"])
+            idx = pd.MultiIndex.from_arrays([table["view"].astype(str), table["frame"]])
+            for c in ("shift_x_px", "shift_y_px"):
+                table[c] = sh[c].reindex(idx).to_numpy()
+            n_sh = {v: int((o != 0).any(axis=1).sum()) for v, o in fit.frame_shifts.items()}
+            for w in warnings:
+                if w["code"] == "frame-shifts":
+                    w["message"] = (w["message"].replace(" (nothing corrects them)", "")
+                                    + "; the loop's frame-shift took each view's common shift per frame out of the "
+                                      "3-D points and the smoothed 2-D centres (columns shift_x_px, shift_y_px)")
+                    w["corrected_by_loop"] = True
+            log.info("track: frame-shift: %s", ", ".join(f"{v} {n} frames" for v, n in n_sh.items()))
         table = table.sort_values(["view", "frame", "marker"], kind="stable")
         table["view"] = pd.Categorical(table["view"], categories=views)
         table = table.sort_values(["view", "frame"], kind="stable")
@@ -733,6 +753,8 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     rs = ResultSet(out, primary="track.json")
     cols2d = ["view", "frame", "marker", "x_px", "y_px", "time_s", "found", "status", "snr", "amplitude",
               "area_px", "sigma_px", "pred_x_px", "pred_y_px", "gate_px"]
+    if "shift_x_px" in table:
+        cols2d += ["shift_x_px", "shift_y_px"]
     if smoothing is not None:
         cols2d += ["sd_px", "x_px_smooth", "y_px_smooth", "sd_px_smooth", "smooth_outlier"]
     rs.add_csv("markers2d.csv", table[cols2d], float_format="%.6f", na_rep="")

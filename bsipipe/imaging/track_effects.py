@@ -23,6 +23,19 @@ leaves independent values of either sign.  Three effects leave structure instead
     at :math:`(t - \delta)/(1 + \varepsilon)`, both chosen to minimise the (robust) sum
     of squared gaps.  Parameters ``view_time_offset_s`` (at B's first frame) and
     ``view_clock_drift`` (:math:`\varepsilon`, B's frame interval over A's, minus one).
+``frame-shift``
+    A view's whole picture jolts from frame to frame (a C-arm's vibration: the source and
+    detector move, the head does not): every marker of that view's frame is shifted by a
+    common offset, which the other view does not see, so the gaps of a frame's markers move
+    together.  Fix: each view's offset in each frame, the median over its markers of their
+    departures from their own smooth tracks (Savitzky-Golay, the offsets taken out and the
+    tracks smoothed again until they settle), kept where it stands out of the markers'
+    scatter, subtracted before triangulating.  Only the part that is not smooth in time is
+    seen: a jolt's slow part is the markers' common motion.  Outside evidence: the 2-D tracks
+    themselves (BIC of a common offset per frame against none, on the markers' departures
+    from their smooth tracks), and the ray gaps must fall too (a shift that both views see
+    alike is the head moving, not a jolt).  Parameters: ``frame_shifts`` (per view, how many
+    frames, the RMS and largest offset).
 ``identity-swap``
     Two markers' names are exchanged in one view from some frame on: both get gaps of many
     times the noise, for a run of frames (runs test, group means).  Fix: for every frame,
@@ -66,10 +79,12 @@ class StereoSpec:
     swaps: bool = False
     occlusion: bool = False
     clock_drift: bool = False        # with time_offset: B's clock also runs at its own rate
+    frame_shift: bool = False        # each view's picture shifted by a common offset per frame
 
     def describe(self) -> str:
         parts = [n for n, on in (("view-time-offset", self.time_offset and not self.clock_drift),
-                                 ("view-clock-drift", self.clock_drift), ("identity-swap", self.swaps),
+                                 ("view-clock-drift", self.clock_drift), ("frame-shift", self.frame_shift),
+                                 ("identity-swap", self.swaps),
                                  ("occlusion", self.occlusion)) if on]
         return "stereo" + ("+" + "+".join(parts) if parts else "")
 
@@ -172,6 +187,7 @@ class StereoFit:
     swaps: list = field(default_factory=list)
     xb_used: np.ndarray | None = None
     success: bool = True
+    frame_shifts: dict | None = None  # view -> (F, 2) px each frame's common shift taken out (frame-shift)
 
     @property
     def ray_gap_rms_mm(self) -> float:
@@ -472,6 +488,116 @@ def _smooth_runs(x: np.ndarray, window: int) -> np.ndarray:
     return out
 
 
+def estimate_frame_shifts(x: np.ndarray, window: int = 11, n_iter: int = 30, min_markers: int = 3,
+                          z: float = 3.0) -> tuple[np.ndarray, dict]:
+    """The common shift of one view's picture in each frame (F, 2) px, from its tracks ``x``
+    (F, M, 2), NaN where not found.
+
+    A shift common to a frame's markers is what their departures from their own smooth
+    tracks (quadratic Savitzky-Golay over ``window`` frames) share: the median over the
+    markers (at least ``min_markers``) of each frame's departures.  The shifts are taken out
+    and the tracks smoothed again, ``n_iter`` times or until they settle; a frame's shift is
+    kept where it exceeds ``z`` standard errors of that median (1.4826 MAD of the markers'
+    departures over the square root of their number), else 0.  Only the part of the shifts
+    that is not smooth over the window is found (the smooth part is the markers' common
+    motion).
+
+    Returns the shifts and ``{"n_frames", "rms_px", "max_px", "delta_bic", ...}``:
+    ``delta_bic`` weighs a common offset per shifted frame (2 parameters each) against none,
+    on the markers' departures from their smooth tracks (capped at 5 robust sd)."""
+    F, M = x.shape[:2]
+    found = np.isfinite(x).all(axis=2)
+    n = found.sum(axis=1)
+    enough = n >= min_markers
+    o = np.zeros((F, 2))
+
+    def departures(o):
+        return x - _smooth_runs(x - o[:, None, :], window) - o[:, None, :]
+
+    def median_over_markers(r):
+        out = np.zeros((F, 2))
+        if enough.any():
+            out[enough] = np.nanmedian(r[enough], axis=1)
+        return out
+
+    v0 = (x - _smooth_runs(x, window))[found].ravel()       # departures without any shift
+    nobs = len(v0)
+    cap = (5 * max(1.4826 * float(np.median(np.abs(v0 - np.median(v0)))) if nobs else 0.0, 1e-12)) ** 2
+    rss0 = float(np.sum(np.minimum(v0 ** 2, cap)))
+
+    def kept(o):
+        """The shifts that stand out of their frame's scatter (others 0), and the evidence."""
+        r = departures(o)
+        med = median_over_markers(r)
+        sd = np.full((F, 2), np.inf)
+        if enough.any():
+            sd[enough] = 1.4826 * np.nanmedian(np.abs(r[enough] - med[enough][:, None, :]), axis=1)
+        se = sd / np.sqrt(np.maximum(n, 1))[:, None]
+        keep = enough & (np.abs(o) > z * se).any(axis=1)
+        o = np.where(keep[:, None], o, 0.0)
+        k = 2 * int(keep.sum())
+        info = {"n_frames": int(keep.sum()), "n_frames_seen": int(enough.sum()),
+                "rms_px": float(np.sqrt(np.mean(np.sum(o[keep] ** 2, axis=1)))) if keep.any() else 0.0,
+                "max_px": float(np.hypot(o[:, 0], o[:, 1]).max()) if F else 0.0, "window_frames": int(window),
+                "n_obs": nobs, "n_params": k, "delta_bic": 0.0}
+        if nobs > k + 2:
+            rss1 = float(np.sum(np.minimum(departures(o)[found].ravel() ** 2, cap)))
+            info.update(rss0_px2=rss0, rss1_px2=rss1,
+                        delta_bic=float(nobs * math.log(max(rss0, 1e-300) / max(rss1, 1e-300)) - k * math.log(nobs)))
+        return o, info
+
+    for it in range(max(1, int(n_iter))):
+        new = o + median_over_markers(departures(o))
+        done = float(np.abs(new - o).max()) < 1e-4 if F else True
+        o = new
+        if it == 0 and kept(o)[1]["delta_bic"] <= 0:
+            break               # no shift that the first pass finds is worth its parameters
+        if done:
+            break
+    return kept(o)
+
+
+def low_rank_frame_shifts(x: np.ndarray, start: np.ndarray, n_iter: int = 50, min_markers: int = 3) -> np.ndarray:
+    """Refine a view's frame shifts (F, 2) px with a motion model instead of smoothness: the
+    markers' tracks ``x`` (F, M, 2) are a fixed position each, plus one shared time course
+    times each marker's own displacement (rank 1: every marker moved by the indentor, each
+    as far as it goes and in its own direction; a reference not at all), plus the frame's
+    shift.  A shift cannot pose as that motion unless every marker moved alike, so most of
+    its slow part, which smoothness cannot tell from the markers' common motion, is found
+    too; what stays is a multiple of the time course (the markers' mean displacement and a
+    shift along it fit alike).
+
+    Alternating least squares from ``start`` (:func:`estimate_frame_shifts`): the rank-1
+    fit (SVD, a missing position filled with the model's) of the tracks less the shifts,
+    then each frame's shift as the median over its markers of what that fit leaves.  The
+    shifts' mean is 0 (a constant is the markers')."""
+    F, M = x.shape[:2]
+    X = x.reshape(F, 2 * M)
+    W = np.isfinite(X)
+    ax = np.tile([0, 1], M)                       # the axis of each column: x0, y0, x1, y1, ...
+    enough = np.isfinite(x).all(axis=2).sum(axis=1) >= min_markers
+    o = np.array(start, float, copy=True)
+    model = None
+    with np.errstate(all="ignore"):
+        for _ in range(max(1, int(n_iter))):
+            Y = X - o[:, ax]
+            c = np.nanmean(Y, axis=0)
+            c = np.where(np.isfinite(c), c, 0.0)
+            Yc = np.where(W, Y - c, 0.0 if model is None else model)
+            U, S, Vt = np.linalg.svd(Yc, full_matrices=False)
+            model = np.outer(U[:, 0] * S[0], Vt[0])
+            R = np.where(W, X - c - model, np.nan)
+            new = np.zeros((F, 2))
+            for a in (0, 1):
+                if enough.any():
+                    new[enough, a] = np.nanmedian(R[enough][:, ax == a], axis=1)
+            done = float(np.abs(new - o).max()) < 1e-5
+            o = new
+            if done:
+                break
+    return o - o[enough].mean(axis=0) if enough.any() else o
+
+
 def _gap_problem(d: StereoData, xb: np.ndarray | None, smooth_frames: int, reach_s: float):
     """What the clock searches share: both views' tracks smoothed alike (Savitzky-Golay,
     quadratic, ``smooth_frames``), the points both see that the tracker did not flag and
@@ -546,7 +672,8 @@ def estimate_time_offset(d: StereoData, max_offset_s: float | None = None, xb: n
     of the gaps there, so that a few wrong points cannot pull the estimate.
 
     The estimate is rejected (0, with ``offset_rejected_s`` and why in ``note``) unless it
-    acts like a clock: B moved the other way by as much must fit worse than no offset
+    acts like a clock: it lowers the mean squared gap (outliers capped) by 2 % or more; B
+    moved the other way by as much must fit worse than no offset
     (interpolating B between its frames averages noise that is not smooth in time, such as
     a jolt of its whole picture, alike either way), and the offset found on the even frames
     must lower the odd frames' mean squared gap, and the one found on the odd frames the even
@@ -597,6 +724,13 @@ def estimate_time_offset(d: StereoData, max_offset_s: float | None = None, xb: n
             out["note"] += ("; offset rejected: B moved the other way by as much fits as well as or better "
                             f"than no offset (mean squared gap {mo:.3g} against {m0:.3g} mm^2; {mb:.3g} at the "
                             "best): interpolation averaging noise, not a clock")
+        elif 1.0 - mb / m0 < 0.02:
+            # under 2 % of the typical squared gap (outliers capped): no evidence of a clock,
+            # whatever a few large gaps make of the RMSE (as for the rate, see estimate_clock_drift)
+            out["view_time_offset_s"] = 0.0
+            out["offset_rejected_s"] = d2
+            out["note"] += (f"; offset rejected: it lowers the mean squared gap (outliers capped) by only "
+                            f"{100 * (1.0 - mb / m0):.2f} %")
         else:
             # a clock holds for every frame: the offset found on the even frames must also lower
             # the odd frames' gaps (noise shared by a frame's markers, such as a jolt, can
@@ -637,7 +771,8 @@ def estimate_clock_drift(d: StereoData, max_offset_s: float | None = None, xb: n
     range over the sequence, at most 1 %: frame clocks differ by parts per thousand), the best
     offset within 2 frame periods of the constant one; then Nelder-Mead from the best node.
     The rate is rejected (0, the constant offset kept, ``drift_rejected`` and why in
-    ``note``) unless it acts like a clock: its minimum lies inside the range; B's times moved
+    ``note``) unless it acts like a clock: its minimum lies inside the range; it lowers the
+    mean squared gap (outliers capped) below the constant offset's by 2 % or more; B's times moved
     the other way from the constant offset's by as much fit worse than the constant offset
     (interpolation between B's frames averages noise that is not smooth in time alike either
     way); and the rate found on the even frames lowers the odd frames' mean squared gap below
@@ -722,9 +857,13 @@ def estimate_clock_drift(d: StereoData, max_offset_s: float | None = None, xb: n
                         f"(mean squared gap {c_mirror:.3g} against {c_zero:.3g} mm^2 without the rate; "
                         f"{c_best:.3g} at the best): interpolation averaging noise, not a clock")
     elif gain_all < 0.02:
-        # a rate that gains under 2 % of the mean squared gap is no evidence of one (the loop
-        # asks for 5 % of the RMSE): kept as found, without the costly held-out fits
-        out["note"] += f"; the rate lowers the mean squared gap by only {100 * gain_all:.2f} %"
+        # under 2 % of the typical squared gap (outliers capped) is no evidence of a rate,
+        # whatever a few large gaps make of the RMSE (as for the offset)
+        out["drift_rejected"] = eps
+        out["view_clock_drift"] = 0.0
+        out["view_time_offset_s"] = const["view_time_offset_s"]
+        out["note"] += (f"; rate rejected: it lowers the mean squared gap (outliers capped) below the constant "
+                        f"offset's by only {100 * gain_all:.2f} %")
     elif even.sum() >= 10 and (~even).sum() >= 10:
         held = {}
         for name, fit_on in (("even", even), ("odd", ~even)):
@@ -805,6 +944,40 @@ def stereo_fit(d: StereoData, spec: StereoSpec, *, max_offset_s: float | None = 
             xb[np.ix_(idx, [i, j])] = xb[np.ix_(idx, [j, i])]
         params["identity_swaps"] = swaps
         n_params += len(swaps)
+    shifts = None
+    if spec.frame_shift:
+        # each view's common shift per frame, taken out of its tracks before anything else
+        # (the clock searches below see the corrected tracks)
+        oa, ia = estimate_frame_shifts(xa)
+        ob, ib = estimate_frame_shifts(xb)
+        # a view whose tracks show no shifts worth their parameters keeps its positions
+        oa = oa if ia["delta_bic"] > 10 else np.zeros_like(oa)
+        ob = ob if ib["delta_bic"] > 10 else np.zeros_like(ob)
+        # refined by the motion model where that makes the views agree better (the ray gaps
+        # are the judge: the model assumes the markers moved together in time)
+        # (not tried where the 2-D tracks show no shifts: the effect is vetoed there anyway)
+        cand = {"smooth tracks": (oa, ob)}
+        rss = {}
+        if ia["delta_bic"] + ib["delta_bic"] > 0:
+            la, lb = low_rank_frame_shifts(xa, oa), low_rank_frame_shifts(xb, ob)
+            cand["rank-1 motion"] = (np.where((oa != 0).any(axis=1)[:, None], la, 0.0),
+                                     np.where((ob != 0).any(axis=1)[:, None], lb, 0.0))
+            for k, (sa, sb) in cand.items():
+                g = _triangulate(d.views, (xa - sa[:, None, :]).reshape(-1, 2),
+                                 (xb - sb[:, None, :]).reshape(-1, 2))["ray_gap_signed_mm"]
+                rss[k] = float(np.nansum(g ** 2))
+        how = min(rss, key=rss.get) if rss else "smooth tracks"
+        oa, ob = cand[how]
+        xa = xa - oa[:, None, :]
+        xb = xb - ob[:, None, :]
+        d = replace(d, xa=xa, xb=xb)
+        for info, o in ((ia, oa), (ib, ob)):
+            keep = (o != 0).any(axis=1)
+            info.update(method=how, rms_px=float(np.sqrt(np.mean(np.sum(o[keep] ** 2, axis=1)))) if keep.any() else 0.0,
+                        max_px=float(np.hypot(o[:, 0], o[:, 1]).max()) if len(o) else 0.0)
+        params["frame_shifts"] = {va.name: ia, vb.name: ib}
+        params["frame_shift_ray_gap_ss_mm2"] = rss
+        shifts = {va.name: oa, vb.name: ob}
     offset, drift = 0.0, 0.0
     if spec.time_offset or spec.clock_drift or fixed_offset_s is not None:
         if fixed_offset_s is not None:
@@ -890,7 +1063,7 @@ def stereo_fit(d: StereoData, spec: StereoSpec, *, max_offset_s: float | None = 
     pts["marker"] = pts["marker"].astype(str)
     cov = {"v_perp_mm_s": np.nan_to_num(v_perp[fi, mi]), "speed_mm_s": np.nan_to_num(speed[fi, mi]),
            "time_s": d.ta[fi]}
-    return StereoFit(spec, pts, res, params, n_params, cov, mi, fi, swaps, xb)
+    return StereoFit(spec, pts, res, params, n_params, cov, mi, fi, swaps, xb, frame_shifts=shifts)
 
 
 def _interp_trajectory(t: np.ndarray, X: np.ndarray) -> np.ndarray:
@@ -943,6 +1116,24 @@ def _occlusion_evidence(before, after) -> dict | None:
             "test": "Gaussian likelihood of the gaps: one variance vs a separate variance for the tracker-flagged points"}
 
 
+def _frame_shift_evidence(before, after) -> dict | None:
+    """A common shift per frame, from the 2-D tracks (each view's BIC of a common offset per
+    shifted frame against none, :func:`estimate_frame_shifts`), and the ray gaps it must
+    lower: the smaller of the two delta BICs (a shift both views see alike is the head
+    moving: it leaves the gaps as they were)."""
+    fs = after.fit.params.get("frame_shifts")
+    if not fs:
+        return None
+    tracks = float(sum(v.get("delta_bic", 0.0) for v in fs.values()))
+    gaps = float(before.bic - after.bic)
+    return {"delta_bic": min(tracks, gaps), "tracks_2d_delta_bic": tracks, "ray_gap_delta_bic": gaps,
+            "views": {k: {kk: v[kk] for kk in ("n_frames", "rms_px", "max_px", "delta_bic") if kk in v}
+                      for k, v in fs.items()},
+            "test": "Gaussian likelihood of the markers' departures from their smooth tracks with a common offset "
+                    "per shifted frame against none (per view, summed), and of the ray gaps after against before; "
+                    "the smaller"}
+
+
 EFFECTS = (
     Effect("view-time-offset",
            "the two C-arms are not synchronised: view B's frames are taken a fixed time after (or before) A's",
@@ -956,6 +1147,13 @@ EFFECTS = (
            "time (covariates v_perp_mm_s and time_s)",
            lambda s: None if s.clock_drift else replace(s, time_offset=True, clock_drift=True),
            ("view_time_offset_s", "view_clock_drift")),
+    Effect("frame-shift",
+           "a view's whole picture jolts from frame to frame (a C-arm's vibration): every marker of the frame is "
+           "shifted by a common offset the other view does not see",
+           "the gaps of a frame's markers move together, frame to frame; the markers' 2-D departures from their "
+           "smooth tracks share an offset per frame",
+           lambda s: None if s.frame_shift else replace(s, frame_shift=True), ("frame_shifts",),
+           evidence=_frame_shift_evidence),
     Effect("identity-swap",
            "two markers' names were exchanged in one view (they passed close and the tracker swapped them)",
            "two markers' gaps jump to many times the noise for a run of frames (group means, runs test)",
