@@ -357,7 +357,8 @@ def test_a_jolting_view_is_named_frame_shift_and_taken_out(kind):
     gaps, takes each frame's shift out, and the 3-D error falls several fold: on markers
     moving each its own way (sines, only the jolts' part that is not smooth in time is
     found) and on an indentation (references still, the rest moved by one time course: the
-    rank-1 motion model finds the jolts whole)."""
+    rank-1 motion model finds the jolts whole, the references standing still fixing the part
+    that follows the time course)."""
     cams = two_carms()
     V = views_from_cameras(cams)
     if kind == "sine":
@@ -376,15 +377,14 @@ def test_a_jolting_view_is_named_frame_shift_and_taken_out(kind):
     how = fit.params.get("frame_shifts", {}).get("cam2", {}).get("method")
     print(kind, names, how, f"3-D RMS {before:.4f} -> {after:.4f} mm")
     assert names[0] == "frame-shift" and "view-time-offset" not in names
-    assert after < (0.3 if kind == "sine" else 0.1) * before
+    assert after < (0.3 if kind == "sine" else 0.06) * before
     if kind == "indentation":
-        # the jolts (2.6 px RMS) are found to a tenth; what is left follows the motion's time
-        # course (a shift along it and the markers' mean displacement fit alike)
+        # the jolts (3.4 px RMS) are found to the markers' noise (0.05 px each)
         assert how == "rank-1 motion"
         j = jolt[d.frames] - jolt[d.frames].mean(axis=0)
         e = fit.frame_shifts["cam2"] - j
         print(f"jolt RMS {np.sqrt(np.mean(np.sum(j ** 2, axis=1))):.3f} px, left {np.sqrt(np.mean(np.sum(e ** 2, axis=1))):.3f} px")
-        assert np.sqrt(np.mean(np.sum(e ** 2, axis=1))) < 0.1 * np.sqrt(np.mean(np.sum(j ** 2, axis=1)))
+        assert np.sqrt(np.mean(np.sum(e ** 2, axis=1))) < 0.1
 
 
 def test_the_head_moving_is_not_taken_for_a_jolting_view():

@@ -564,8 +564,9 @@ def low_rank_frame_shifts(x: np.ndarray, start: np.ndarray, n_iter: int = 50, mi
     as far as it goes and in its own direction; a reference not at all), plus the frame's
     shift.  A shift cannot pose as that motion unless every marker moved alike, so most of
     its slow part, which smoothness cannot tell from the markers' common motion, is found
-    too; what stays is a multiple of the time course (the markers' mean displacement and a
-    shift along it fit alike).
+    too; what stays is a multiple of the time course (a shift along it and a common
+    displacement of every marker fit alike), which the largest group of markers that move
+    alike, the references, fixes by standing still (:func:`_still_group`).
 
     Alternating least squares from ``start`` (:func:`estimate_frame_shifts`): the rank-1
     fit (SVD, a missing position filled with the model's) of the tracks less the shifts,
@@ -595,7 +596,42 @@ def low_rank_frame_shifts(x: np.ndarray, start: np.ndarray, n_iter: int = 50, mi
             o = new
             if done:
                 break
-    return o - o[enough].mean(axis=0) if enough.any() else o
+    if not enough.any():
+        return o
+    o = o - o[enough].mean(axis=0)
+    return o + _still_group(x, o, enough, min_markers)
+
+
+def _still_group(x: np.ndarray, o: np.ndarray, enough: np.ndarray, min_group: int = 3) -> np.ndarray:
+    """What to add to a view's frame shifts ``o`` so that the largest group of markers that
+    move alike stands still: the part of a jolt that follows the motion's time course fits
+    as well as a common displacement of every marker, and references fixed to the skull are
+    the markers whose displacement is that common one alone.  The tracks less ``o`` are
+    fitted at rank 1 (time course ``u`` of unit RMS, each marker's displacement ``a_m`` in px);
+    the group is the most markers (at least ``min_group``) whose displacements lie within
+    ``max(0.05, 4 se)`` px of one of theirs (``se`` the displacement's standard error from the
+    fit's residual); its mean displacement times ``u`` is returned (0 where there is none)."""
+    F, M = x.shape[:2]
+    y = x - o[:, None, :]
+    with np.errstate(all="ignore"):
+        c = np.nanmean(y[enough], axis=0)
+    seen = np.isfinite(y).all(axis=2) & enough[:, None]
+    if M < min_group or seen.sum() < 3 * M:
+        return np.zeros_like(o)
+    Yc = np.where(seen[..., None], y - c, 0.0).reshape(F, 2 * M)
+    U, S, Vt = np.linalg.svd(Yc, full_matrices=False)
+    n_u = max(int(enough.sum()), 1)
+    u = U[:, 0] * np.sqrt(n_u)
+    a = (Vt[0] * S[0] / np.sqrt(n_u)).reshape(M, 2)
+    res = (Yc - np.outer(U[:, 0] * S[0], Vt[0])).reshape(F, M, 2)[seen]
+    sd = 1.4826 * float(np.median(np.abs(res - np.median(res)))) if len(res) else 0.0
+    tol = max(0.05, 4.0 * sd / np.sqrt(max(float(seen.sum(axis=0).min()), 1.0)))
+    near = np.hypot(*(a[:, None, :] - a[None, :, :]).transpose(2, 0, 1)) <= tol
+    best = int(np.argmax(near.sum(axis=1)))
+    group = near[best]
+    if group.sum() < min_group:
+        return np.zeros_like(o)
+    return np.outer(np.where(enough, u, 0.0), a[group].mean(axis=0))
 
 
 def _gap_problem(d: StereoData, xb: np.ndarray | None, smooth_frames: int, reach_s: float):
