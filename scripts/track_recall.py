@@ -51,6 +51,11 @@ def score(synth_dir: Path, track_dir: Path, auto: bool = False) -> dict:
     tk = pd.read_csv(track_dir / "markers2d.csv", dtype={"marker": str, "view": str})
     if auto:
         tk = name_by_truth(tk, tr)
+    if "shift_x_px" in tk:
+        # the smoothed centres have the loop's frame shifts taken out; the truth's 2-D
+        # positions carry the jolts (they are where the markers' images are): put them back
+        for a in ("x", "y"):
+            tk[f"{a}_px_smooth"] = tk[f"{a}_px_smooth"] + tk[f"shift_{a}_px"].fillna(0.0)
     extra = [c for c in ("sd_px", "x_px_smooth", "y_px_smooth", "sd_px_smooth") if c in tk]
     m = tr.merge(tk[["view", "frame", "marker", "x_px", "y_px", "found", *extra]], on=["view", "frame", "marker"],
                  suffixes=("_t", ""), how="left")
