@@ -256,6 +256,9 @@ def test_tiny_study_end_to_end(clean):
               "fit-ogden/fit.json", "export-fe/manifest.json", "config/calibrate.yaml"):
         assert (t / f).is_file(), f
     assert read_stamp(t / "track")["state"] == "done"
+    # the tracking loop's steps, each with the ray gap before and after
+    md = (t / "track" / "loop.md").read_text()
+    assert md.startswith("# Tracking and triangulation: closing the loop") and "| 0 | declared model `stereo`" in md
     if expect_fe:
         cmp = json.loads((t / "compare" / "compare.json").read_text())
         assert cmp["n_markers"] >= 1 and cmp["sigma_mm"] >= 0

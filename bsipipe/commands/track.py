@@ -11,10 +11,11 @@ search windows around each marker's prediction and matched globally
 (:mod:`bsipipe.imaging.track`); without seeds every frame is searched whole and the
 detections are linked.  With a calibration the two stereo views are triangulated
 (:mod:`bsipipe.imaging.triangulate`) and the loop (:mod:`bsipipe.imaging.track_effects`)
-looks for a view time offset, identity swaps and partial occlusion.
+looks for a view time offset or clock drift, a jolting picture, identity swaps and partial
+occlusion.
 
 Writes ``DIR/markers2d.csv``, ``DIR/xmalab_2d.csv``, with a calibration
-``DIR/markers3d.csv`` and ``DIR/xmalab_3d.csv``, the figures ``DIR/track.png`` (trajectories)
+``DIR/markers3d.csv``, ``DIR/xmalab_3d.csv`` and ``DIR/loop.md``, the figures ``DIR/track.png`` (trajectories)
 and ``DIR/overlay.png`` (a frame with the detections), and ``DIR/track.json`` (last).
 """
 
@@ -786,6 +787,10 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         result["summary"] = {k: loop_dict["final"][k] for k in ("ray_gap_rms_mm", "ray_gap_median_mm",
                                                                  "reprojection_rms_px", "n_two_view", "n_single_view")}
         result["loop"] = loop_dict
+        if loop_dict.get("enabled"):
+            from ..report.loop_report import loop_markdown
+            rs.add_text("loop.md", loop_markdown(loop_dict, title="Tracking and triangulation: closing the loop "
+                                                                "(RMSE = ray gap RMS)"))
     else:
         result["loop"] = None
         result["loop_note"] = "no calibration: 2-D tracking only, nothing to triangulate or close the loop on"
