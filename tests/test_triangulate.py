@@ -190,6 +190,17 @@ def test_estimate_time_offset_on_exact_tracks():
     assert abs(est["view_time_offset_s"] + 0.25) < 1e-3
 
 
+def _jolt(tab: pd.DataFrame, view: str, px: int, seed: int) -> np.ndarray:
+    """Shift ``view``'s whole picture (every marker of a frame alike) by a random whole number
+    of pixels up to ``px`` per axis in each frame, in place; returns the shifts (frames, 2)."""
+    rng = np.random.default_rng(seed)
+    jolt = rng.integers(-px, px + 1, (tab["frame"].max() + 1, 2)).astype(float)
+    b = tab["view"] == view
+    tab.loc[b, "x_px"] += jolt[tab.loc[b, "frame"], 0]
+    tab.loc[b, "y_px"] += jolt[tab.loc[b, "frame"], 1]
+    return jolt
+
+
 def test_jolts_of_one_view_are_not_taken_for_a_clock_offset():
     """No clock offset, but cam2's whole picture jolts by up to 4 px in every frame (each
     frame its own random whole-pixel shift, common to its markers).  Interpolating cam2
@@ -202,11 +213,7 @@ def test_jolts_of_one_view_are_not_taken_for_a_clock_offset():
     cams = two_carms()
     V = views_from_cameras(cams)
     tab, _ = _moving_tracks(cams, offset_s=0.0, noise_px=0.05, seed=11)
-    rng = np.random.default_rng(12)
-    jolt = rng.integers(-4, 5, (tab["frame"].max() + 1, 2)).astype(float)
-    b = tab["view"] == "cam2"
-    tab.loc[b, "x_px"] += jolt[tab.loc[b, "frame"], 0]
-    tab.loc[b, "y_px"] += jolt[tab.loc[b, "frame"], 1]
+    _jolt(tab, "cam2", 4, seed=12)
     d = stereo_data(tab, (V["cam1"], V["cam2"]))
     est = estimate_time_offset(d)
     print(est.get("offset_rejected_s"), est.get("mean_sq_gap_mm2"))
@@ -365,11 +372,7 @@ def test_a_jolting_view_is_named_frame_shift_and_taken_out(kind):
         tab, pos = _moving_tracks(cams, offset_s=0.0, noise_px=0.05, seed=31, n_frames=120)
     else:
         tab, pos = _rank_one_tracks(cams, seed=32)
-    rng = np.random.default_rng(33)
-    jolt = rng.integers(-4, 5, (tab["frame"].max() + 1, 2)).astype(float)
-    b = tab["view"] == "cam2"
-    tab.loc[b, "x_px"] += jolt[tab.loc[b, "frame"], 0]
-    tab.loc[b, "y_px"] += jolt[tab.loc[b, "frame"], 1]
+    jolt = _jolt(tab, "cam2", 4, seed=33)
     d = stereo_data(tab, (V["cam1"], V["cam2"]))
     loop, fit, _ = close_stereo_loop(d)
     names = [s["effect"] for s in loop["steps"]]
