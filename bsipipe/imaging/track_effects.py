@@ -60,6 +60,7 @@ from __future__ import annotations
 import functools
 import logging
 import math
+from types import SimpleNamespace
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -677,7 +678,6 @@ def _gap_problem(d: StereoData, xb: np.ndarray | None, smooth_frames: int, reach
         np.divide(n2, nn, out=un[:, 2])
         return un @ base
 
-    from types import SimpleNamespace
     return SimpleNamespace(gaps=gaps, fi=fi, mi=mi)
 
 
@@ -754,43 +754,37 @@ def estimate_time_offset(d: StereoData, max_offset_s: float | None = None, xb: n
         cap0 = (5 * max(s0, s1)) ** 2
         m0, mb, mo = (float(np.mean(np.minimum(g ** 2, cap0))) for g in (g0, gb, gaps(-d2)))
         out["mean_sq_gap_mm2"] = {"zero": m0, "best": mb, "opposite": mo}
+        gain_all = 1.0 - mb / m0 if m0 > 0 else 0.0
+        why = None
+        even = (fi % 2) == 0
         if not mo > m0:
-            out["view_time_offset_s"] = 0.0
-            out["offset_rejected_s"] = d2
-            out["note"] += ("; offset rejected: B moved the other way by as much fits as well as or better "
-                            f"than no offset (mean squared gap {mo:.3g} against {m0:.3g} mm^2; {mb:.3g} at the "
-                            "best): interpolation averaging noise, not a clock")
-        elif 1.0 - mb / m0 < 0.02:
+            why = (f"B moved the other way by as much fits as well as or better than no offset (mean squared gap "
+                   f"{mo:.3g} against {m0:.3g} mm^2; {mb:.3g} at the best): interpolation averaging noise, not a clock")
+        elif gain_all < 0.02:
             # under 2 % of the typical squared gap (outliers capped): no evidence of a clock,
             # whatever a few large gaps make of the RMSE (as for the rate, see estimate_clock_drift)
-            out["view_time_offset_s"] = 0.0
-            out["offset_rejected_s"] = d2
-            out["note"] += (f"; offset rejected: it lowers the mean squared gap (outliers capped) by only "
-                            f"{100 * (1.0 - mb / m0):.2f} %")
-        else:
+            why = f"it lowers the mean squared gap (outliers capped) by only {100 * gain_all:.2f} %"
+        elif even.sum() >= 10 and (~even).sum() >= 10:
             # a clock holds for every frame: the offset found on the even frames must also lower
             # the odd frames' gaps (noise shared by a frame's markers, such as a jolt, can
             # line up with the motion by chance in one half, not in both)
-            even = (fi % 2) == 0
-            if even.sum() >= 10 and (~even).sum() >= 10:
-                gain_all = 1.0 - mb / m0
-                held = {}
-                for name, fit_on in (("even", even), ("odd", ~even)):
-                    # found on one half of the frames, judged on the other
-                    dh, _ = minimise(lambda x: float(np.mean(np.minimum(gaps(x)[fit_on] ** 2, cap0))), -lim, lim, 81)
-                    other = ~fit_on
-                    h0 = float(np.mean(np.minimum(g0[other] ** 2, cap0)))
-                    h1 = float(np.mean(np.minimum(gaps(dh)[other] ** 2, cap0)))
-                    held[name] = {"offset_s": dh, "gain_on_the_other_half": 1.0 - h1 / h0}
-                out["held_out"] = {"gain_all": gain_all, "fit_on": held}
-                worst = min(h["gain_on_the_other_half"] for h in held.values())
-                if worst < 0.5 * gain_all:
-                    out["view_time_offset_s"] = 0.0
-                    out["offset_rejected_s"] = d2
-                    out["note"] += ("; offset rejected: found on the even frames (" + f"{held['even']['offset_s']:.4g}"
-                                    + " s) or the odd ones (" + f"{held['odd']['offset_s']:.4g}" + " s), it lowers the "
-                                    f"other half's mean squared gap by as little as {100 * worst:.1f} %, against "
-                                    f"{100 * gain_all:.1f} % on all frames at {d2:.4g} s")
+            held = {}
+            for name, fit_on in (("even", even), ("odd", ~even)):
+                # found on one half of the frames, judged on the other
+                dh, _ = minimise(lambda x: float(np.mean(np.minimum(gaps(x)[fit_on] ** 2, cap0))), -lim, lim, 81)
+                other = ~fit_on
+                h0 = float(np.mean(np.minimum(g0[other] ** 2, cap0)))
+                h1 = float(np.mean(np.minimum(gaps(dh)[other] ** 2, cap0)))
+                held[name] = {"offset_s": dh, "gain_on_the_other_half": 1.0 - h1 / h0}
+            out["held_out"] = {"gain_all": gain_all, "fit_on": held}
+            worst = min(h["gain_on_the_other_half"] for h in held.values())
+            if worst < 0.5 * gain_all:
+                why = (f"found on the even frames ({held['even']['offset_s']:.4g} s) or the odd ones "
+                       f"({held['odd']['offset_s']:.4g} s), it lowers the other half's mean squared gap by as little "
+                       f"as {100 * worst:.1f} %, against {100 * gain_all:.1f} % on all frames at {d2:.4g} s")
+        if why is not None:
+            out.update(view_time_offset_s=0.0, offset_rejected_s=d2)
+            out["note"] += "; offset rejected: " + why
     return out
 
 
@@ -878,28 +872,19 @@ def estimate_clock_drift(d: StereoData, max_offset_s: float | None = None, xb: n
     out["mean_sq_gap_mm2"].update({"without_rate": c_zero, "opposite_rate": c_mirror})
     even = (fi % 2) == 0
     gain_all = 1.0 - c_best / c_const if c_const > 0 else 0.0
+    why = None
     if abs(eps) >= 0.98 * eps_max:
         # no minimum inside the range: what pulls the rate to its bound is not a clock (frame
         # clocks differ by parts per thousand, video standards by 0.1 %)
-        out["drift_rejected"] = eps
-        out["view_clock_drift"] = 0.0
-        out["view_time_offset_s"] = const["view_time_offset_s"]
-        out["note"] += f"; rate rejected: at the bound of its search range (+-{eps_max:.3g}), no minimum inside it"
+        why = f"at the bound of its search range (+-{eps_max:.3g}), no minimum inside it"
     elif not c_mirror > c_zero:
-        out["drift_rejected"] = eps
-        out["view_clock_drift"] = 0.0
-        out["view_time_offset_s"] = const["view_time_offset_s"]
-        out["note"] += (f"; rate rejected: B's times moved the other way by as much fit as well or better "
-                        f"(mean squared gap {c_mirror:.3g} against {c_zero:.3g} mm^2 without the rate; "
-                        f"{c_best:.3g} at the best): interpolation averaging noise, not a clock")
+        why = (f"B's times moved the other way by as much fit as well or better (mean squared gap {c_mirror:.3g} "
+               f"against {c_zero:.3g} mm^2 without the rate; {c_best:.3g} at the best): interpolation averaging "
+               "noise, not a clock")
     elif gain_all < 0.02:
         # under 2 % of the typical squared gap (outliers capped) is no evidence of a rate,
         # whatever a few large gaps make of the RMSE (as for the offset)
-        out["drift_rejected"] = eps
-        out["view_clock_drift"] = 0.0
-        out["view_time_offset_s"] = const["view_time_offset_s"]
-        out["note"] += (f"; rate rejected: it lowers the mean squared gap (outliers capped) below the constant "
-                        f"offset's by only {100 * gain_all:.2f} %")
+        why = f"it lowers the mean squared gap (outliers capped) below the constant offset's by only {100 * gain_all:.2f} %"
     elif even.sum() >= 10 and (~even).sum() >= 10:
         held = {}
         for name, fit_on in (("even", even), ("odd", ~even)):
@@ -912,13 +897,13 @@ def estimate_clock_drift(d: StereoData, max_offset_s: float | None = None, xb: n
         out["held_out"] = {"gain_all": gain_all, "fit_on": held}
         worst = min(h["gain_on_the_other_half"] for h in held.values())
         if worst < 0.5 * gain_all:
-            out["drift_rejected"] = eps
-            out["view_clock_drift"] = 0.0
-            out["view_time_offset_s"] = const["view_time_offset_s"]
-            out["note"] += (f"; rate rejected: found on the even or the odd frames ({held['even']['drift']:.3g}, "
-                            f"{held['odd']['drift']:.3g}), it lowers the other half's mean squared gap below the "
-                            f"constant offset's by as little as {100 * worst:.1f} %, against {100 * gain_all:.1f} % "
-                            f"on all frames at {eps:.3g}")
+            why = (f"found on the even or the odd frames ({held['even']['drift']:.3g}, {held['odd']['drift']:.3g}), "
+                   f"it lowers the other half's mean squared gap below the constant offset's by as little as "
+                   f"{100 * worst:.1f} %, against {100 * gain_all:.1f} % on all frames at {eps:.3g}")
+    if why is not None:
+        # the rate is no clock's: the constant offset (as estimate_time_offset judged it) stands
+        out.update(drift_rejected=eps, view_clock_drift=0.0, view_time_offset_s=const["view_time_offset_s"])
+        out["note"] += "; rate rejected: " + why
     return out
 
 
