@@ -693,6 +693,24 @@ def _minimise(cost, lo: float, hi: float, grid_n: int, xatol: float) -> tuple[fl
     return (float(res.x), float(res.fun)) if res.fun <= vals[k] else (float(grid[k]), float(vals[k]))
 
 
+def _held_out(even: np.ndarray, gain_all: float, one_half, key: str, at: str, against: str = "") -> tuple[dict, str | None]:
+    """The even/odd check of a clock estimate: ``one_half(fit_on, other)`` finds it on the
+    points ``fit_on`` and returns (the estimate, the gain it brings the ``other`` points);
+    each half's must be at least half ``gain_all``, the gain on all points at ``at``.
+    Returns the ``held_out`` record and why the estimate fails (None if it holds)."""
+    held = {}
+    for name, fit_on in (("even", even), ("odd", ~even)):
+        est, gain = one_half(fit_on, ~fit_on)
+        held[name] = {key: est, "gain_on_the_other_half": gain}
+    worst = min(h["gain_on_the_other_half"] for h in held.values())
+    why = None
+    if worst < 0.5 * gain_all:
+        why = (f"found on the even frames ({held['even'][key]:.4g}) or the odd ones ({held['odd'][key]:.4g}), it lowers "
+               f"the other half's mean squared gap {against}by as little as {100 * worst:.1f} %, against "
+               f"{100 * gain_all:.1f} % on all frames at {at}")
+    return {"gain_all": gain_all, "fit_on": held}, why
+
+
 def estimate_time_offset(d: StereoData, max_offset_s: float | None = None, xb: np.ndarray | None = None,
                          smooth_frames: int = 9) -> dict:
     r"""B's clock minus A's (s) that minimises the sum of squared ray gaps.
@@ -768,20 +786,12 @@ def estimate_time_offset(d: StereoData, max_offset_s: float | None = None, xb: n
             # a clock holds for every frame: the offset found on the even frames must also lower
             # the odd frames' gaps (noise shared by a frame's markers, such as a jolt, can
             # line up with the motion by chance in one half, not in both)
-            held = {}
-            for name, fit_on in (("even", even), ("odd", ~even)):
-                # found on one half of the frames, judged on the other
+            def one_half(fit_on, other):
                 dh, _ = minimise(lambda x: float(np.mean(np.minimum(gaps(x)[fit_on] ** 2, cap0))), -lim, lim, 81)
-                other = ~fit_on
                 h0 = float(np.mean(np.minimum(g0[other] ** 2, cap0)))
-                h1 = float(np.mean(np.minimum(gaps(dh)[other] ** 2, cap0)))
-                held[name] = {"offset_s": dh, "gain_on_the_other_half": 1.0 - h1 / h0}
-            out["held_out"] = {"gain_all": gain_all, "fit_on": held}
-            worst = min(h["gain_on_the_other_half"] for h in held.values())
-            if worst < 0.5 * gain_all:
-                why = (f"found on the even frames ({held['even']['offset_s']:.4g} s) or the odd ones "
-                       f"({held['odd']['offset_s']:.4g} s), it lowers the other half's mean squared gap by as little "
-                       f"as {100 * worst:.1f} %, against {100 * gain_all:.1f} % on all frames at {d2:.4g} s")
+                return dh, 1.0 - float(np.mean(np.minimum(gaps(dh)[other] ** 2, cap0))) / h0
+
+            out["held_out"], why = _held_out(even, gain_all, one_half, "offset_s", f"{d2:.4g} s")
         if why is not None:
             out.update(view_time_offset_s=0.0, offset_rejected_s=d2)
             out["note"] += "; offset rejected: " + why
@@ -886,20 +896,14 @@ def estimate_clock_drift(d: StereoData, max_offset_s: float | None = None, xb: n
         # whatever a few large gaps make of the RMSE (as for the offset)
         why = f"it lowers the mean squared gap (outliers capped) below the constant offset's by only {100 * gain_all:.2f} %"
     elif even.sum() >= 10 and (~even).sum() >= 10:
-        held = {}
-        for name, fit_on in (("even", even), ("odd", ~even)):
-            # both models found on one half of the frames, judged on the other
+        def one_half(fit_on, other):
+            # both models (with and without the rate) found on one half, judged on the other
             hm, he, _ = fit(fit_on)
-            cm, _ = const_cost(fit_on)
-            other = ~fit_on
-            c0, c1 = cost(cm, 0.0, other), cost(hm, he, other)
-            held[name] = {"drift": he, "gain_on_the_other_half": 1.0 - c1 / c0 if c0 > 0 else 0.0}
-        out["held_out"] = {"gain_all": gain_all, "fit_on": held}
-        worst = min(h["gain_on_the_other_half"] for h in held.values())
-        if worst < 0.5 * gain_all:
-            why = (f"found on the even or the odd frames ({held['even']['drift']:.3g}, {held['odd']['drift']:.3g}), "
-                   f"it lowers the other half's mean squared gap below the constant offset's by as little as "
-                   f"{100 * worst:.1f} %, against {100 * gain_all:.1f} % on all frames at {eps:.3g}")
+            c0 = cost(const_cost(fit_on)[0], 0.0, other)
+            return he, 1.0 - cost(hm, he, other) / c0 if c0 > 0 else 0.0
+
+        out["held_out"], why = _held_out(even, gain_all, one_half, "drift", f"{eps:.3g}",
+                                         against="below the constant offset's ")
     if why is not None:
         # the rate is no clock's: the constant offset (as estimate_time_offset judged it) stands
         out.update(drift_rejected=eps, view_clock_drift=0.0, view_time_offset_s=const["view_time_offset_s"])
