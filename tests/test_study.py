@@ -23,6 +23,7 @@ import time
 from functools import partial
 from pathlib import Path
 
+import pandas as pd
 import pytest
 import yaml
 
@@ -256,6 +257,13 @@ def test_tiny_study_end_to_end(clean):
               "fit-ogden/fit.json", "export-fe/manifest.json", "config/calibrate.yaml"):
         assert (t / f).is_file(), f
     assert read_stamp(t / "track")["state"] == "done"
+    # each two-view point's standard deviation per axis, propagated from its centres' (the
+    # Monte Carlo check is tests/test_triangulate.py); none for single-view points
+    p3 = pd.read_csv(t / "track" / "markers3d.csv")
+    two = p3["n_views"] == 2
+    sds = p3[["sd_x_mm", "sd_y_mm", "sd_z_mm", "sd_x_mm_raw", "sd_y_mm_raw", "sd_z_mm_raw"]]
+    assert two.any() and (sds[two] > 0).all().all() and (sds[two] < 1.0).all().all()
+    assert sds[~two].isna().all().all()
     # the tracking loop's steps, each with the ray gap before and after
     md = (t / "track" / "loop.md").read_text()
     assert md.startswith("# Tracking and triangulation: closing the loop") and "| 0 | declared model `stereo`" in md

@@ -433,6 +433,26 @@ def decode_workers() -> int:
     return min(4, (os.cpu_count() or 1) + 1)
 
 
+def _point_sds(points3d: pd.DataFrame, table: pd.DataFrame, vpair, pair) -> None:
+    """Each two-view point's standard deviation per axis (mm), propagated from its two
+    centres' (:func:`bsipipe.imaging.triangulate.point_covariance`): ``sd_x_mm, sd_y_mm,
+    sd_z_mm`` of the smoothed point from ``sd_px_smooth``, ``sd_x_mm_raw`` ... of the raw one
+    from ``sd_px`` (both as the stereo check left them); NaN for single-view points."""
+    from ..imaging.triangulate import point_covariance
+    two = (points3d["n_views"] == 2).to_numpy()
+    idx = pd.MultiIndex.from_frame(points3d.loc[two, ["frame", "marker"]])
+    per_view = [table[table["view"] == v].set_index(["frame", "marker"]) for v in pair]
+    for suffix, cols, sd_col in (("", ("x_mm", "y_mm", "z_mm"), "sd_px_smooth"),
+                                 ("_raw", ("x_mm_raw", "y_mm_raw", "z_mm_raw"), "sd_px")):
+        out = np.full((len(points3d), 3), np.nan)
+        if two.any():
+            cov = point_covariance(vpair, points3d.loc[two, list(cols)].to_numpy(float),
+                                   [t[sd_col].reindex(idx).to_numpy(float) for t in per_view])
+            out[two] = np.sqrt(np.einsum("nkk->nk", cov))
+        for k, a in enumerate("xyz"):
+            points3d[f"sd_{a}_mm{suffix}"] = out[:, k]
+
+
 def _missing_frame_rows(table: pd.DataFrame, missing: dict[str, list[int]], fps: float | None,
                         views: list[str]) -> pd.DataFrame:
     """``table`` with a row for every marker of a view in each of its ``missing`` frames (not
@@ -720,6 +740,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
                                            if two.any() else None)
             smoothing["ray_gap_rms_mm_raw"] = loop_dict["final"]["ray_gap_rms_mm"]
             smoothing["stereo_check"] = _stereo_check(table, points3d, vpair, pair, smoothing["tracks"])
+            _point_sds(points3d, table, vpair, pair)
     if points3d is not None:
         if cfg.lowpass_hz is not None:
             rate = cfg.fps or (1.0 / np.nanmedian(np.diff(data.ta)) if time_unit == "s" else None)
@@ -778,6 +799,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     if points3d is not None:
         cols3d = ["frame", "time_s", "marker", "x_mm", "y_mm", "z_mm", "ray_gap_mm", "ray_gap_signed_mm",
                   "reproj_err_px", f"reproj_{pair[0]}_px", f"reproj_{pair[1]}_px", "n_views", "source", "flag"]
+        cols3d += [c for c in ("sd_x_mm", "sd_y_mm", "sd_z_mm") if c in points3d]
         cols3d += [c for c in points3d.columns if c.endswith("_raw")]
         cols3d += [c for c in points3d.columns if c.endswith("_filt")] + (["filtered"] if "filtered" in points3d else [])
         rs.add_csv("markers3d.csv", points3d[cols3d], float_format="%.6f", na_rep="")

@@ -285,6 +285,42 @@ def _triangulate(views: tuple[ViewGeometry, ViewGeometry], uv_a, uv_b, *, refine
             "reproj_rms_px": np.sqrt(np.mean(rep ** 2, axis=1)), "normal": nrm}
 
 
+def point_covariance(views, X: np.ndarray, sd_px) -> np.ndarray:
+    r"""First-order covariance (N, 3, 3) mm^2 of points ``X`` (N, 3) triangulated from views
+    whose centres each have per-axis standard deviations ``sd_px`` (one (N,) array per view,
+    px).  :func:`triangulate` minimises the plain sum of squared reprojection errors, so the
+    covariance is the sandwich :math:`A^{-1} B A^{-1}`, :math:`A = \sum_v J_v^T J_v`,
+    :math:`B = \sum_v s_v^2 J_v^T J_v`, :math:`J_v` the Jacobian (2 x 3) of view ``v``'s
+    full projection (distortion included, by central differences) at the point.  Along a
+    view's rays the depth is set by the other view only.  NaN where a view's sd is missing
+    or not positive, or the point is not finite."""
+    X = np.asarray(X, float).reshape(-1, 3)
+    n = len(X)
+    A = np.zeros((n, 3, 3))
+    B = np.zeros((n, 3, 3))
+    bad = ~np.isfinite(X).all(axis=1)
+    h = 1e-3                                                       # mm
+    Xs = np.where(bad[:, None], 0.0, X)
+    for view, sd in zip(views, sd_px):
+        sd = np.asarray(sd, float).reshape(-1)
+        ok = np.isfinite(sd) & (sd > 0)
+        bad |= ~ok
+        J = np.empty((n, 2, 3))
+        for k in range(3):
+            e = np.zeros(3)
+            e[k] = h
+            J[:, :, k] = (view.project(Xs + e) - view.project(Xs - e)) / (2 * h)
+        JJ = np.einsum("nik,nil->nkl", J, J)
+        A += JJ
+        B += np.where(ok, sd, 0.0)[:, None, None] ** 2 * JJ
+    cov = np.full((n, 3, 3), np.nan)
+    good = ~bad
+    if good.any():
+        Ai = np.linalg.inv(A[good])
+        cov[good] = Ai @ B[good] @ Ai
+    return cov
+
+
 def closest_point_on_ray(view: ViewGeometry, uv: np.ndarray, target_mm: np.ndarray) -> np.ndarray:
     """The point (n, 3) on each ray through raw pixels ``uv`` nearest to ``target_mm`` (n, 3):
     a single-view reconstruction constrained by a predicted 3-D position."""
