@@ -74,6 +74,20 @@ def twin_check(trial_dir) -> dict:
     alld = np.concatenate(list(disp.values())) if disp else np.array([])
     out["markers_fe"] = {"position": _stats(allp), "displacement": _stats(alld),
                          "displacement_rms_per_marker_mm": {n: _rms(v) for n, v in disp.items()}}
+    # the position errors over the sds track states for the same points (a rigid map keeps
+    # lengths: |error| over sqrt(sd_x^2 + sd_y^2 + sd_z^2), RMS 1 when the sds hold)
+    p3 = pd.read_csv(d / "track" / "markers3d.csv")
+    if {"sd_x_mm", "sd_y_mm", "sd_z_mm"} <= set(p3.columns):
+        sd = p3.set_index(["frame", "marker"])[["sd_x_mm", "sd_y_mm", "sd_z_mm"]]
+        z = []
+        for name, g in fe.groupby("marker"):
+            if name not in pos:
+                continue
+            s3 = sd.reindex(pd.MultiIndex.from_arrays([g["frame"].to_numpy(int), [name] * len(g)])).to_numpy(float)
+            z.append(pos[name] / np.sqrt((s3 ** 2).sum(axis=1)))
+        z = np.concatenate(z) if z else np.array([])
+        z = z[np.isfinite(z)]
+        out["markers_fe"]["position_over_stated_sd"] = {"n": int(z.size), "z_rms": _rms(z) if z.size else None}
 
     # indentor trajectory handed to the FE model
     man = json.loads((d / "export-fe" / "manifest.json").read_text())
@@ -106,6 +120,9 @@ def format_check(c: dict) -> str:
         f"registration (references at frame {r['frame']}): {f(r)}",
         f"implanted markers, FE frame: position {f(m['position'])}",
         f"implanted markers, FE frame: displacement {f(m['displacement'])}",
+        *([f"implanted markers, FE frame: position error over the stated 3-D sd, RMS "
+           f"{m['position_over_stated_sd']['z_rms']:.2f} (n = {m['position_over_stated_sd']['n']})"]
+          if m.get("position_over_stated_sd", {}).get("z_rms") is not None else []),
         f"indentor trajectory ({i['source']}): {f(i['trajectory'])}",
         f"indentor depth {i['depth_mm']:.4f} mm (true {i['depth_true_mm']:.4f}); contact point error "
         f"{i['contact_point_error_mm']:.4f} mm",
