@@ -270,6 +270,10 @@ def track(config, out, **opts) -> None:
             extra = ""
             if s["effect"] == "view-time-offset":
                 extra = f", offset {s['params'].get('view_time_offset_s', float('nan')):+.4f} s"
+            elif s["effect"] == "frame-shift":
+                fs = s["params"].get("frame_shifts") or {}
+                extra = ", " + ", ".join(f"{v} {i.get('n_frames', 0)} frames shifted ({i.get('rms_px', 0.0):.2f} px RMS)"
+                                         for v, i in fs.items())
             elif s["effect"] == "view-clock-drift":
                 extra = (f", offset {s['params'].get('view_time_offset_s', float('nan')):+.4f} s at the first frame, "
                          f"B's frame interval {100 * s['params'].get('view_clock_drift', float('nan')):+.3f} % "
