@@ -60,8 +60,8 @@ from __future__ import annotations
 import functools
 import logging
 import math
-from types import SimpleNamespace
 from dataclasses import dataclass, field, replace
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
@@ -551,8 +551,10 @@ def estimate_frame_shifts(x: np.ndarray, window: int = 11, n_iter: int = 30, min
         new = o + median_over_markers(departures(o))
         done = float(np.abs(new - o).max()) < 1e-4 if F else True
         o = new
-        if it == 0 and kept(o)[1]["delta_bic"] <= 0:
-            break               # no shift that the first pass finds is worth its parameters
+        if it == 0:
+            first = kept(o)
+            if first[1]["delta_bic"] <= 0:
+                return first    # no shift that the first pass finds is worth its parameters
         if done:
             break
     return kept(o)
@@ -821,8 +823,7 @@ def estimate_clock_drift(d: StereoData, max_offset_s: float | None = None, xb: n
     from scipy.optimize import minimize
     const = estimate_time_offset(d, max_offset_s, xb, smooth_frames)
     dt = const.get("frame_period_s") or (float(np.nanmedian(np.diff(d.ta))) if len(d.ta) > 1 else 1.0)
-    lo_s, hi_s = const["search_s"]
-    lim = float(hi_s)
+    lim = float(const["search_s"][1])
     t0, t1 = (float(np.nanmin(d.ta)), float(np.nanmax(d.ta))) if len(d.ta) else (0.0, 0.0)
     duration = max(t1 - t0, dt)
     tm = 0.5 * (t0 + t1)
@@ -866,7 +867,7 @@ def estimate_clock_drift(d: StereoData, max_offset_s: float | None = None, xb: n
         return om, c
 
     om, eps, c_best = fit()
-    oc, c_const = const_cost()
+    _, c_const = const_cost()
     out.update({"view_time_offset_s": om - eps * tm, "view_clock_drift": eps, "offset_at_mid_s": om,
                 "mean_sq_gap_mm2": {"constant": c_const, "best": c_best}, "n_points": int(len(fi)),
                 "note": "capped squared gaps of the smoothed tracks; offset at mid-sequence and rate searched"})
