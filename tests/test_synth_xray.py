@@ -582,3 +582,28 @@ def test_view_clock_drift_times_cam2s_frames():
     seq = tw.truth()["sequence"]
     assert seq["view_clock_drift"] == 0.01 and seq["view_time_offset_s"] == 0.1
     assert np.allclose(seq["times_s"]["cam2"], tw.times["cam2"])
+
+
+def test_static_specks_darken_the_same_pixels_in_every_frame():
+    """``effects.static_specks``: dark spots fixed on each intensifier, recorded in the truth.
+    Against the same twin without specks (the same scene, the same noise drawn), every frame is
+    darker at each speck's centre and unchanged far from the specks."""
+    base = {"calibration": {"views": 0, "stereo_views": 0}, "sequence": {"n_frames": 3}}
+    plain = dict(Twin(SynthConfig.model_validate(base)).sequence_frames())
+    tw = Twin(SynthConfig.model_validate({**base, "effects": {"static_specks": 6}}))
+    dusty = dict(tw.sequence_frames())
+    specks = tw.truth()["sequence"]["static_specks"]
+    assert set(specks) == {"cam1", "cam2"} and all(len(s) == 6 for s in specks.values())
+    for v, sp in specks.items():
+        far = np.ones(plain[f"sequence/{v}/frame_0000.png"].shape, bool)
+        for s in sp:
+            assert 0.08 <= s["depth"] <= 0.25 and 1.0 <= s["sigma_px"] <= 1.8
+            x, y = int(round(s["x_px"])), int(round(s["y_px"]))
+            far[max(y - 12, 0):y + 13, max(x - 12, 0):x + 13] = False
+        for k in range(3):
+            name = f"sequence/{v}/frame_{k:04d}.png"
+            diff = plain[name].astype(float) - dusty[name].astype(float)
+            assert np.abs(diff[far]).mean() < 0.05
+            for s in sp:
+                x, y = int(round(s["x_px"])), int(round(s["y_px"]))
+                assert diff[y - 1:y + 2, x - 1:x + 2].mean() > 0.015 * plain[name][y, x], (v, s, k)

@@ -652,7 +652,8 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
               "and any 3-D point triangulated from them, carry the jolts (nothing corrects them)",
             log, views={v: {"n_frames": len(s), "max_px": max(s)} for v, s in shifts.items()}))
     if rig is not None:
-        from ..imaging.track_effects import close_stereo_loop, match_tracks_across_views, stereo_data
+        from ..imaging.track_effects import (CAPTURE_COLUMNS, WindowSource, close_stereo_loop,
+                                             match_tracks_across_views, stereo_data)
         from ..imaging.triangulate import lowpass_trajectories
         vpair = (rig[pair[0]], rig[pair[1]])
         if seed_df is None:
@@ -673,6 +674,10 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
             time_unit = "s"
         data = stereo_data(sub, vpair)
         del sub
+        if det.parity == "none":
+            # the frames can be searched again in windows, for the loop's track-capture
+            data.windows = WindowSource({v: cfg.views[v] for v in pair}, d, cfg.polarity, det, channel=cfg.channel,
+                                        workers=decode_workers())
         if not data.markers:
             raise InputError(f"no marker is tracked in both {pair[0]} and {pair[1]} (the seeds must use the same "
                              "marker names in both views)", path=cfg.seeds)
@@ -690,6 +695,27 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
             events.append({"view": sw["view"], "frame": sw["first_frame"], "marker": a, "kind": "identity-swap",
                            "other": b, "last_frame": sw["last_frame"],
                            "detail": "names exchanged by the loop (ray gaps)"})
+        # a track the loop found held by something else (track-capture): the re-found positions
+        # replace it in the 2-D table; the frames where the marker's image merged with what held
+        # it are left empty (status merged)
+        for cp in fit.captures:
+            key = (table["view"] == cp["view"]) & (table["marker"] == cp["marker"])
+            new = pd.DataFrame({"frame": cp["_frames"], **cp["_columns"]}).set_index("frame")
+            rows = table.index[key & table["frame"].isin(cp["_frames"])]
+            at = table.loc[rows, "frame"].to_numpy()
+            for c in CAPTURE_COLUMNS:
+                table.loc[rows, c] = new[c].reindex(at).to_numpy()
+            table.loc[rows, "found"] = True
+            table.loc[rows, "status"] = "found"
+            gone = table.index[key & table["frame"].isin(cp["_dropped"])]
+            table.loc[gone, ["x_px", "y_px"]] = np.nan
+            table.loc[gone, "found"] = False
+            table.loc[gone, "status"] = "merged"
+            events.append({"view": cp["view"], "frame": cp["first_frame"], "marker": cp["marker"],
+                           "kind": "track-capture", "last_frame": cp["last_frame"], "n_refound": cp["n_refound"],
+                           "n_left_out": cp["n_left_out"],
+                           "detail": "the track was held by something else in its window: the marker was found "
+                                     "again along the other view's rays by the loop"})
         if fit.frame_shifts:
             # each view's common shift per frame (frame-shift): a column of the 2-D table, taken
             # out of the smoothed centres and of the 3-D points

@@ -4,7 +4,7 @@ The declared model pairs frame *i* of view A with frame *i* of view B, trusts ev
 tracked position and every marker name, and triangulates.  Its residual is the signed ray
 gap :math:`g` of each point (mm; :func:`~bsipipe.imaging.triangulate.triangulate`): for
 markers measured without error through exact cameras it is zero, and measurement noise
-leaves independent values of either sign.  Three effects leave structure instead:
+leaves independent values of either sign.  These effects leave structure instead:
 
 ``view-time-offset``
     The two C-arms are not synchronised: view B's frame *i* is taken at
@@ -42,6 +42,23 @@ leaves independent values of either sign.  Three effects leave structure instead
     the pairing of A's and B's markers that makes the gaps small; every run of frames
     where exchanging two of B's names lowers both gaps below a quarter is one swap
     (one parameter each).
+``track-capture``
+    A marker's track in one view was held by something else in its search window (a static
+    spot: dust or a defect on the intensifier, darker than the bead) while the marker moved
+    off: from then on one marker's gaps are many times the noise for a run of frames (group
+    means, runs test).  Fix (:func:`find_captures`): runs of at least 3 frames where a
+    marker's gap exceeds 10 times the gaps' noise (from their frame-to-frame changes, which a
+    slowly growing bias does not enter); the frames of both views searched again
+    (:class:`WindowSource`, the tracker's window search) in windows around the track wide
+    enough for the marker's motion in the other view; per frame the pair of candidates, one
+    per view and held by no other marker, whose rays pass within 4 noise sd, nearest the pair
+    taken a frame before.  A view where that finds the marker elsewhere in at least 3 frames
+    (and a pair in at least half the run's) takes the re-found positions; what held the track,
+    if it stood still, is a spot: every frame the track stood on it is searched again with
+    the spot's candidates left out (its error may lie along the rays there, unseen by the
+    gap), and a frame with no pair left is left out (the marker's image merged with the
+    spot).  One parameter per re-found run.  The views' frames are paired as recorded: with a
+    clock offset between them uncorrected, a moving marker's true pair does not pass the test.
 ``occlusion``
     A marker partly hidden (entering or leaving an instrument's shadow) is measured off
     centre: its gaps at the frames next to a loss, or where the tracker saw its amplitude
@@ -81,11 +98,12 @@ class StereoSpec:
     occlusion: bool = False
     clock_drift: bool = False        # with time_offset: B's clock also runs at its own rate
     frame_shift: bool = False        # each view's picture shifted by a common offset per frame
+    capture: bool = False            # a view's track held by another spot: re-found along the other view's ray
 
     def describe(self) -> str:
         parts = [n for n, on in (("view-time-offset", self.time_offset and not self.clock_drift),
                                  ("view-clock-drift", self.clock_drift), ("frame-shift", self.frame_shift),
-                                 ("identity-swap", self.swaps),
+                                 ("identity-swap", self.swaps), ("track-capture", self.capture),
                                  ("occlusion", self.occlusion)) if on]
         return "stereo" + ("+" + "+".join(parts) if parts else "")
 
@@ -96,7 +114,9 @@ class StereoData:
 
     ``xa``, ``xb`` (F, M, 2) raw pixels (NaN where not found); ``ta``, ``tb`` (F,) each
     view's frame times (s; B's nominal clock); ``suspect_a``, ``suspect_b`` (F, M) bool:
-    partial detections and the frames next to a loss (the tracker's flags).
+    partial detections and the frames next to a loss (the tracker's flags).  ``windows``: where
+    the frames can be searched again (:class:`WindowSource`, for ``track-capture``); None: they
+    cannot (the effect then finds nothing to re-measure).
     """
 
     views: tuple[ViewGeometry, ViewGeometry]
@@ -108,6 +128,7 @@ class StereoData:
     tb: np.ndarray
     suspect_a: np.ndarray
     suspect_b: np.ndarray
+    windows: "WindowSource | None" = field(default=None, repr=False, compare=False)
 
 
 def _view_arrays(cols: dict, markers: list[str], frames: np.ndarray):
@@ -189,6 +210,7 @@ class StereoFit:
     xb_used: np.ndarray | None = None
     success: bool = True
     frame_shifts: dict | None = None  # view -> (F, 2) px each frame's common shift taken out (frame-shift)
+    captures: list = field(default_factory=list)  # track-capture: re-found runs (find_captures)
 
     @property
     def ray_gap_rms_mm(self) -> float:
@@ -912,6 +934,278 @@ def estimate_clock_drift(d: StereoData, max_offset_s: float | None = None, xb: n
     return out
 
 
+class WindowSource:
+    """Search windows in a view's frames, read again on request (``track-capture``).
+
+    ``sources``: view name -> frame source (what :func:`~bsipipe.io.images.iter_frames`
+    reads).  :meth:`candidates` searches each asked window
+    (:func:`~bsipipe.imaging.detect.window_arrays`, the tracker's own search) and keeps what it
+    found, so a window asked for again is not searched again; a view's frames are read once
+    per call that asks for new windows, up to the last frame asked for.  ``n_reads`` counts
+    those reads.
+    """
+
+    def __init__(self, sources: dict, diameter_px: float, polarity="dark", detection=None, *,
+                 channel: int | None = None, workers: int = 1):
+        self.sources = dict(sources)
+        self.diameter_px = float(diameter_px)
+        self.polarity = polarity
+        self.detection = detection
+        self.channel = channel
+        self.workers = workers
+        self.n_reads = 0
+        self._found: dict = {}
+
+    def candidates(self, view: str, requests: dict) -> dict:
+        """``requests``: frame -> list of windows ``(key, x_px, y_px, radius_px)``; returns
+        ``{(frame, key): {column: array}}``, the candidates within each window (None where the
+        source has no such frame)."""
+        new = {f: [q for q in qs if (view, f, q) not in self._found] for f, qs in requests.items()}
+        new = {f: qs for f, qs in new.items() if qs}
+        if new:
+            from ..io.images import iter_frames
+            from .detect import DetectionSettings, window_arrays
+            det = self.detection if self.detection is not None else DetectionSettings()
+            self.n_reads += 1
+            last = max(new)
+            for fr in iter_frames(self.sources[view], channel=self.channel, workers=self.workers):
+                if fr.index > last:
+                    break
+                qs = new.get(fr.index)
+                if not qs:
+                    continue
+                c = np.array([[q[1], q[2]] for q in qs], float)
+                r = np.array([q[3] for q in qs], float)
+                cand = window_arrays(fr.image, c, r, self.diameter_px, self.polarity, det)
+                xy = np.column_stack([cand["x_px"], cand["y_px"]])
+                for q, cc, rr in zip(qs, c, r):
+                    inside = np.hypot(xy[:, 0] - cc[0], xy[:, 1] - cc[1]) <= rr
+                    self._found[(view, fr.index, q)] = {k: np.asarray(v)[inside] for k, v in cand.items()}
+        return {(f, q): self._found.get((view, f, q)) for f, qs in requests.items() for q in qs}
+
+
+#: The candidate columns a re-found position carries into the 2-D table.
+CAPTURE_COLUMNS = ("x_px", "y_px", "amplitude", "sigma_px", "snr", "area_px")
+
+
+def _capture_runs(g: np.ndarray, s: float, factor: float, min_run: int) -> list[tuple[int, int, int]]:
+    """``(marker, first, stop)`` index runs where a marker's gap exceeds ``factor`` x ``s`` for
+    at least ``min_run`` frames (runs less than ``min_run`` frames apart joined)."""
+    big = np.isfinite(g) & (np.abs(g) > factor * s)
+    out = []
+    for j in np.flatnonzero(big.any(axis=0)):
+        r0, r1 = _runs(big[:, j])
+        runs: list[list[int]] = []
+        for a, b in zip(r0.tolist(), r1.tolist()):
+            if runs and a - runs[-1][1] < min_run:
+                runs[-1][1] = b
+            else:
+                runs.append([a, b])
+        out += [(int(j), a, b) for a, b in runs if big[a:b, j].sum() >= min_run]
+    return out
+
+
+def _refind_windows(d: StereoData, own: np.ndarray, other: np.ndarray, shift: np.ndarray, j: int, idx: np.ndarray,
+                    diameter_px: float) -> tuple[dict, float]:
+    """The windows :func:`_refind` searches: ``{frame: [(key, x, y, radius)]}`` and the radius."""
+    oth = other[idx, j]
+    fin = np.isfinite(oth).all(axis=1)
+    if fin.sum() < 2:
+        return {}, 0.0
+    ext = float(np.hypot(*(np.nanmax(oth[fin], axis=0) - np.nanmin(oth[fin], axis=0))))
+    radius = float(np.ceil(max(4.0 * diameter_px, 12.0) + ext))
+    centre = pd.DataFrame(own[idx, j] + shift[idx]).ffill().bfill().to_numpy()
+    if not np.isfinite(centre).all():
+        return {}, 0.0
+    req = {}
+    for i, f in enumerate(d.frames[idx].tolist()):
+        if fin[i]:
+            req[f] = [(j, int(round(centre[i, 0])), int(round(centre[i, 1])), int(radius))]
+    return req, radius
+
+
+def _refind(d: StereoData, x: tuple, shifts: tuple, j: int, idx: np.ndarray, tol_mm: float,
+            exclude: dict | None = None) -> dict | None:
+    """Marker ``j`` searched again in both views over the frames ``idx``: in each view a window
+    around where its track was (the tracker's pixels: the loop's ``x`` plus the view's frame
+    ``shifts``) wide enough for the marker's motion in the other view, every candidate not held
+    by another marker of that view; of the pairs whose rays pass within ``tol_mm`` of each other,
+    the one nearest the pair taken last (the first: the nearest rays).  ``exclude``: view index ->
+    ``(x, y, radius)``, a spot whose candidates are not taken (what held the track).  Returns
+    the picks (index into ``idx``; per view the positions and the candidates' columns) or None."""
+    src = d.windows
+    dpx = src.diameter_px
+    per_view = []
+    for k in (0, 1):
+        own, other = x[k], x[1 - k]
+        req, radius = _refind_windows(d, own, other, shifts[k], j, idx, dpx)
+        got = src.candidates(d.views[k].name, req) if req else {}
+        raw_own = own + shifts[k][:, None, :]
+        frames = []
+        for i, f in enumerate(d.frames[idx].tolist()):
+            c = got.get((f, req[f][0])) if f in req else None
+            if c is None or len(c["x_px"]) == 0:
+                frames.append(None)
+                continue
+            xy = np.column_stack([c["x_px"], c["y_px"]])
+            others = np.delete(raw_own[idx[i]], j, axis=0)
+            free = _apart_from(xy, others[np.isfinite(others).all(axis=1)], max(1.0, dpx))
+            if exclude and k in exclude:
+                ex, ey, er = exclude[k]
+                free &= np.hypot(xy[:, 0] - shifts[k][idx[i], 0] - ex, xy[:, 1] - shifts[k][idx[i], 1] - ey) > er
+            cols = {name: np.asarray(c[name], float)[free] for name in CAPTURE_COLUMNS}
+            frames.append((xy[free] - shifts[k][idx[i]], cols))
+        per_view.append((frames, radius))
+    va, vb = d.views
+    base = vb.centre_mm - va.centre_mm
+    picks = []
+    prev = None
+    for i in range(len(idx)):
+        fa, fb = per_view[0][0][i], per_view[1][0][i]
+        if fa is None or fb is None or len(fa[0]) == 0 or len(fb[0]) == 0:
+            continue
+        g = np.abs(_gaps_from_dirs(va.ray_directions(fa[0])[:, None, :], vb.ray_directions(fb[0])[None, :, :], base))
+        ok = np.isfinite(g) & (g < tol_mm)
+        if not ok.any():
+            continue
+        a, b = np.nonzero(ok)
+        if prev is None:
+            q = int(np.argmin(g[a, b]))
+        else:
+            q = int(np.argmin(np.hypot(*(fa[0][a] - prev[0]).T) + np.hypot(*(fb[0][b] - prev[1]).T)))
+        a, b = int(a[q]), int(b[q])
+        prev = (fa[0][a], fb[0][b])
+        picks.append((i, a, b, float(g[a, b])))
+    if not picks:
+        return None
+    out = {"i": np.array([p[0] for p in picks]), "gap_mm": np.array([p[3] for p in picks]),
+           "radius_px": [per_view[0][1], per_view[1][1]]}
+    for k in (0, 1):
+        sel = [(per_view[k][0][p[0]], p[1 + k]) for p in picks]
+        out[f"xy{k}"] = np.array([fr[0][q] for fr, q in sel])
+        out[f"cols{k}"] = {c: np.array([fr[1][c][q] for fr, q in sel]) for c in CAPTURE_COLUMNS}
+    return out
+
+
+def _apart_from(xy: np.ndarray, points: np.ndarray, radius: float) -> np.ndarray:
+    """(n,) True for each of ``xy`` farther than ``radius`` from every one of ``points``."""
+    if len(points) == 0 or len(xy) == 0:
+        return np.ones(len(xy), bool)
+    return (((xy[:, None, :] - points[None, :, :]) ** 2).sum(-1) > radius ** 2).all(axis=1)
+
+
+def _gap_noise(g: np.ndarray) -> float:
+    """The gaps' noise (mm) from their frame-to-frame changes: the median over the markers of
+    the robust sd of each one's successive differences, over sqrt 2.  A bias that changes
+    slowly (a track held off its marker) does not enter it, however many markers carry one."""
+    sds = []
+    for j in range(g.shape[1]):
+        dg = np.diff(g[:, j])
+        dg = dg[np.isfinite(dg)]
+        if len(dg) >= 5:
+            sds.append(1.4826 * float(np.median(np.abs(dg - np.median(dg)))) / math.sqrt(2))
+    return max(float(np.median(sds)), 1e-9) if sds else float("nan")
+
+
+def _moved_views(r: dict | None, x: tuple, j: int, idx: np.ndarray, min_run: int, moved_px: float,
+                 n_run: int) -> list:
+    """The views whose re-found positions (:func:`_refind`) lie elsewhere than the track in
+    at least ``min_run`` frames, with the picks' mask of those frames; none unless the re-find
+    took a pair in at least half of ``n_run`` frames."""
+    if r is None or 2 * len(r["i"]) < n_run:
+        return []
+    out = []
+    for k in (0, 1):
+        moved = np.hypot(*(r[f"xy{k}"] - x[k][idx[r["i"]], j]).T)
+        moved = ~(np.where(np.isfinite(moved), moved, np.inf) <= moved_px)
+        if moved.sum() >= min_run:
+            out.append((k, moved))
+    return out
+
+
+def find_captures(d: StereoData, xa: np.ndarray, xb: np.ndarray, shifts: tuple | None = None, *,
+                  factor: float = 10.0, tol_factor: float = 4.0, min_run: int = 3,
+                  moved_px: float = 0.5) -> tuple[np.ndarray, np.ndarray, list[dict]]:
+    """``track-capture``: runs of frames where a marker's rays pass far apart (more than
+    ``factor`` times their noise, :func:`_gap_noise`, at least ``min_run`` frames), its track searched again in
+    each view along the other view's ray (:func:`_refind`, within ``tol_factor`` sd), and the
+    view where that re-finds the marker somewhere else in at least ``min_run`` frames and
+    agrees with the other view in at least half the run's frames taken: there the re-found
+    positions replace the track's, and the run's frames where no candidate agrees are left out
+    (the marker's image merged with what held its track).  Returns the new ``xa, xb`` and one
+    dict per capture (``_frames``, ``_columns``, ``_dropped``: for the 2-D table).  ``shifts``:
+    each view's common shift per frame (F, 2) already taken out of ``xa``, ``xb`` (frame-shift)."""
+    if d.windows is None:
+        return xa, xb, []
+    F = len(d.frames)
+    shifts = shifts if shifts is not None else (np.zeros((F, 2)), np.zeros((F, 2)))
+    g = _gaps(replace(d, xa=xa), xb)
+    s = _gap_noise(g)
+    if not np.isfinite(s):
+        return xa, xb, []
+    xa, xb = xa.copy(), xb.copy()
+    out = []
+    runs = _capture_runs(g, s, factor, min_run)
+    # every window of every run searched first, one read of each view's frames
+    for k in (0, 1):
+        own, other = (xa, xb) if k == 0 else (xb, xa)
+        req: dict = {}
+        for j, r0, r1 in runs:
+            for f, q in _refind_windows(d, own, other, shifts[k], j, np.arange(r0, r1), d.windows.diameter_px)[0].items():
+                req.setdefault(f, []).extend(q)
+        if req:
+            d.windows.candidates(d.views[k].name, req)
+    done: dict[int, set] = {}
+    near = max(1.5, 0.5 * d.windows.diameter_px)
+    for j, r0, r1 in runs:
+        idx = np.arange(r0, r1)
+        if done.get(j, set()) >= set(idx.tolist()):
+            continue
+        r = _refind(d, (xa, xb), shifts, j, idx, tol_factor * s)
+        changed = _moved_views(r, (xa, xb), j, idx, min_run, moved_px, len(idx))
+        if not changed:
+            continue
+        # what held the track: where it stood in the frames the marker was found elsewhere.  A
+        # static spot holds it wherever the marker passes close, inside the run or not (its
+        # error may lie along the rays there, where the gap does not see it): every frame the
+        # track stood on the spot is searched again, the spot's own candidates left out
+        exclude = {}
+        for k, moved in changed:
+            held = (xa, xb)[k][idx[r["i"][moved]], j]
+            c = np.median(held, axis=0)
+            if np.median(np.hypot(*(held - c).T)) < 0.5:
+                exclude[k] = (float(c[0]), float(c[1]), near)
+        if exclude:
+            on = np.zeros(len(d.frames), bool)
+            on[idx] = True
+            for k, (ex, ey, er) in exclude.items():
+                own = (xa, xb)[k][:, j]
+                on |= np.hypot(own[:, 0] - ex, own[:, 1] - ey) <= er
+            idx2 = np.flatnonzero(on)
+            r2 = _refind(d, (xa, xb), shifts, j, idx2, tol_factor * s, exclude)
+            ch2 = _moved_views(r2, (xa, xb), j, idx2, min_run, moved_px, len(idx))
+            if ch2:
+                idx, r, changed = idx2, r2, ch2
+        done.setdefault(j, set()).update(idx.tolist())
+        before = _gaps(replace(d, xa=xa), xb)[idx, j]
+        drop = np.setdiff1d(np.arange(len(idx)), r["i"])
+        for k, moved in changed:
+            own = (xa, xb)[k]
+            own[idx[r["i"]], j] = r[f"xy{k}"]
+            own[idx[drop], j] = np.nan
+        after = _gaps(replace(d, xa=xa), xb)[idx, j]
+        for k, moved in changed:
+            out.append({"marker": d.markers[j], "view": d.views[k].name, "first_frame": int(d.frames[idx[0]]),
+                        "last_frame": int(d.frames[idx[-1]]), "n_refound": int(moved.sum()),
+                        "n_left_out": int(len(drop)), "search_radius_px": r["radius_px"][k],
+                        "held_at_px": list(exclude[k][:2]) if k in exclude else None,
+                        "gap_rms_before_mm": float(np.sqrt(np.nanmean(before ** 2))),
+                        "gap_rms_after_mm": (float(np.sqrt(np.nanmean(after ** 2))) if np.isfinite(after).any()
+                                             else None),
+                        "_frames": d.frames[idx[r["i"]]], "_columns": r[f"cols{k}"], "_dropped": d.frames[idx[drop]]})
+    return xa, xb, out
+
+
 def find_swaps(d: StereoData, xb: np.ndarray, min_ratio: float = 0.25, min_noise_factor: float = 10.0) -> list[dict]:
     """Runs of frames where exchanging two of B's marker names makes both gaps small.
 
@@ -1004,6 +1298,14 @@ def stereo_fit(d: StereoData, spec: StereoSpec, *, max_offset_s: float | None = 
         params["frame_shifts"] = {va.name: ia, vb.name: ib}
         params["frame_shift_ray_gap_ss_mm2"] = rss
         shifts = {va.name: oa, vb.name: ob}
+    captures: list = []
+    if spec.capture:
+        # a view's track held by something else in its window: searched again along the other view's rays
+        sh = (shifts[va.name], shifts[vb.name]) if shifts is not None else None
+        xa, xb, captures = find_captures(d, xa, xb, sh)
+        d = replace(d, xa=xa, xb=xb)
+        params["track_captures"] = [{k: v for k, v in c.items() if not k.startswith("_")} for c in captures]
+        n_params += len(captures)
     offset, drift = 0.0, 0.0
     if spec.time_offset or spec.clock_drift or fixed_offset_s is not None:
         if fixed_offset_s is not None:
@@ -1089,7 +1391,8 @@ def stereo_fit(d: StereoData, spec: StereoSpec, *, max_offset_s: float | None = 
     pts["marker"] = pts["marker"].astype(str)
     cov = {"v_perp_mm_s": np.nan_to_num(v_perp[fi, mi]), "speed_mm_s": np.nan_to_num(speed[fi, mi]),
            "time_s": d.ta[fi]}
-    return StereoFit(spec, pts, res, params, n_params, cov, mi, fi, swaps, xb, frame_shifts=shifts)
+    return StereoFit(spec, pts, res, params, n_params, cov, mi, fi, swaps, xb, frame_shifts=shifts,
+                     captures=captures)
 
 
 def _interp_trajectory(t: np.ndarray, X: np.ndarray) -> np.ndarray:
@@ -1184,6 +1487,12 @@ EFFECTS = (
            "two markers' names were exchanged in one view (they passed close and the tracker swapped them)",
            "two markers' gaps jump to many times the noise for a run of frames (group means, runs test)",
            lambda s: None if s.swaps else replace(s, swaps=True), ("identity_swaps",)),
+    Effect("track-capture",
+           "a marker's track in one view was held by something else in its search window (a static spot: dust "
+           "or a defect of the intensifier, another object) while the marker moved away",
+           "one marker's gaps grow far beyond the noise for a run of frames (group means, runs test); the "
+           "marker is found again along the other view's ray",
+           lambda s: None if s.capture else replace(s, capture=True), ("track_captures",)),
     Effect("occlusion",
            "a marker partly hidden by an instrument is measured off centre at the frames next to its loss",
            "outlying gaps at the frames the tracker flagged (next to a loss, amplitude drop)",

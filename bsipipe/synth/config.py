@@ -227,6 +227,9 @@ class EffectsConfig(StrictModel):
     frame_jolt_px: int = Field(0, ge=0, le=20, description="in every sequence frame after the first, the anatomy "
                                "(everything but the intensifier's field) is shifted by a random whole number of px "
                                "up to this per axis and view (C-arm vibration, head movement); the truth shifts too")
+    static_specks: int = Field(0, ge=0, le=200, description="static dark spots on each intensifier (dust, defects "
+                               "of the input screen), bead-like (8-25 % darker, sigma 1-1.8 px), scattered over the "
+                               "markers' region of each view: they stay put while the anatomy moves")
 
 
 class CtConfig(StrictModel):

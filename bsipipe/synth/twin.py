@@ -49,7 +49,7 @@ from .xray import (Detector, Patch, RayField, RodShadow, apply_patch, cylinder_c
 
 VIEWS = ("cam1", "cam2")
 _STREAMS = {"cameras": 1, "local": 2, "calibration": 3, "stereo": 4, "scene": 5, "frames": 6,
-            "log": 7, "ct": 8, "seeds": 9, "calib_noise": 10, "ct_noise": 11, "jolt": 12}
+            "log": 7, "ct": 8, "seeds": 9, "calib_noise": 10, "ct_noise": 11, "jolt": 12, "specks": 13}
 
 
 class TwinError(ValueError):
@@ -67,6 +67,22 @@ def _shifted(img: np.ndarray, dx: int, dy: int) -> np.ndarray:
     ys = np.clip(np.arange(h) - dy, 0, h - 1)
     xs = np.clip(np.arange(w) - dx, 0, w - 1)
     return img[ys[:, None], xs[None, :]]
+
+
+def _speck_mask(size: tuple[int, int], specks: np.ndarray) -> np.ndarray:
+    """Transmission (h, w) of static dark spots ``(x, y, depth, sigma)``: 1 - depth x a
+    Gaussian of sd sigma around each (products where they overlap)."""
+    w, h = size
+    m = np.ones((h, w), np.float32)
+    for x, y, depth, sg in specks:
+        r = int(np.ceil(4 * sg))
+        x0, x1 = max(int(x) - r, 0), min(int(x) + r + 1, w)
+        y0, y1 = max(int(y) - r, 0), min(int(y) + r + 1, h)
+        if x0 >= x1 or y0 >= y1:
+            continue
+        yy, xx = np.mgrid[y0:y1, x0:x1]
+        m[y0:y1, x0:x1] *= (1 - depth * np.exp(-((xx - x) ** 2 + (yy - y) ** 2) / (2 * sg * sg))).astype(np.float32)
+    return m
 
 
 def stream(seed: int, name: str) -> np.random.Generator:
@@ -890,8 +906,9 @@ class Twin:
         ss = cfg.image.supersample
         rng = stream(cfg.seed, "frames")
         mu = cfg.xray.mu_steel_per_mm
-        truth = {"projections_px": {}, "occluded": {}, "visible": {}, "tip_px": {}, "jolt_px": {}}
+        truth = {"projections_px": {}, "occluded": {}, "visible": {}, "tip_px": {}, "jolt_px": {}, "specks": {}}
         jolt_rng = stream(cfg.seed, "jolt")
+        speck_rng = stream(cfg.seed, "specks")
         a = cfg.effects.frame_jolt_px
         for v in VIEWS:
             arm = self.arms[v]
@@ -911,6 +928,17 @@ class Twin:
             jolt = jolt_rng.integers(-a, a + 1, (len(t), 2)) if a > 0 else np.zeros((len(t), 2), int)
             jolt[0] = 0
             truth["jolt_px"][v] = jolt
+            # dust on the intensifier: a fixed transmission loss on the detector, scattered over
+            # the markers' region (their first positions, 40 px around)
+            specks = None
+            if cfg.effects.static_specks:
+                u0 = cam.project(P[0])
+                lo, hi = u0.min(axis=0) - 40, u0.max(axis=0) + 40
+                n = cfg.effects.static_specks
+                sp = np.column_stack([speck_rng.uniform(lo, hi, (n, 2)), speck_rng.uniform(0.08, 0.25, n),
+                                      speck_rng.uniform(1.0, 1.8, n)])
+                truth["specks"][v] = sp
+                specks = _speck_mask(cam.image_size, sp)
             for i in range(len(t)):
                 T = T0.copy()
                 rod_T = None
@@ -926,6 +954,8 @@ class Twin:
                 if jolt[i].any():
                     T = _shifted(T, int(jolt[i, 0]), int(jolt[i, 1]))
                     u = u + jolt[i]
+                if specks is not None:
+                    T = T * specks
                 img, ref = arm.detector.expose(T, rng, ref)
                 proj.append(u)
                 occ.append(o)
@@ -1095,6 +1125,9 @@ class Twin:
                 seq["indentor"]["tip_px"] = {v: st["tip_px"][v].tolist() for v in VIEWS}
                 if cfg.effects.frame_jolt_px:
                     seq["frame_jolt_px"] = {v: st["jolt_px"][v].tolist() for v in VIEWS}
+                if cfg.effects.static_specks:
+                    seq["static_specks"] = {v: [dict(zip(("x_px", "y_px", "depth", "sigma_px"), map(float, r)))
+                                                for r in st["specks"][v]] for v in VIEWS}
             out["sequence"] = seq
             out["ct"] = {"coordinate_system": "LPS", "R": R.tolist(), "t_mm": t.tolist(),
                          "maps": "x_ct = R @ x_world + t_mm", "frame": 0, "noise_mm": cfg.ct.noise_mm,
