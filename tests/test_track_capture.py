@@ -139,3 +139,29 @@ def test_a_track_held_by_a_static_speck_is_found_again(tmp_path):
     assert set(merged["marker"]) <= {marker} and merged["x_px"].isna().all()
     ev = [e for e in json.loads((dusty / "track.json").read_text())["events"] if e["kind"] == "track-capture"]
     assert len(ev) == 1 and ev[0]["marker"] == marker
+
+
+def test_window_source_reads_a_view_once_per_new_set_of_windows(tmp_path):
+    """:class:`WindowSource` searches each window once: asking again for the same windows reads
+    no frame; a new window reads the view again, up to the last frame asked for only; every
+    window holds the beads inside it (and none outside)."""
+    from bsipipe.imaging.track_effects import WindowSource
+    d = tmp_path / "v"
+    d.mkdir()
+    xy = np.array([[100.3, 120.6], [300.2, 310.7]])
+    for i in range(6):
+        cv2.imwrite(str(d / f"f{i}.png"), _render(xy + [0.5 * i, 0.0], seed=i))
+    src = WindowSource({"cam1": str(d)}, 4.0)
+    wa, wb, wc = ("a", 100, 120, 10), ("b", 300, 311, 10), ("c", 200, 200, 10)
+    got = src.candidates("cam1", {f: [wa, wb] for f in (1, 3)})
+    assert src.n_reads == 1
+    for f in (1, 3):
+        for w, (x, y) in ((wa, xy[0]), (wb, xy[1])):
+            c = got[(f, w)]
+            assert len(c["x_px"]) == 1
+            assert abs(c["x_px"][0] - (x + 0.5 * f)) < 0.2 and abs(c["y_px"][0] - y) < 0.2
+    assert src.candidates("cam1", {3: [wa]})[(3, wa)] is got[(3, wa)]
+    assert src.n_reads == 1
+    src.candidates("cam1", {4: [wc]})
+    assert src.n_reads == 2 and len(src.candidates("cam1", {4: [wc]})[(4, wc)]["x_px"]) == 0
+    assert src.candidates("cam1", {9: [wa]})[(9, wa)] is None and src.n_reads == 3

@@ -11,7 +11,8 @@ search windows around each marker's prediction and matched globally
 (:mod:`bsipipe.imaging.track`); without seeds every frame is searched whole and the
 detections are linked.  With a calibration the two stereo views are triangulated
 (:mod:`bsipipe.imaging.triangulate`) and the loop (:mod:`bsipipe.imaging.track_effects`)
-looks for a view time offset or clock drift, a jolting picture, identity swaps and partial
+looks for a view time offset or clock drift, a jolting picture, identity swaps, a track held
+by a static spot (the only case where frames are read a second time, in windows) and partial
 occlusion.
 
 Writes ``DIR/markers2d.csv``, ``DIR/xmalab_2d.csv``, with a calibration

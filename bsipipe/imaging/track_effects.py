@@ -958,8 +958,8 @@ class WindowSource:
 
     def candidates(self, view: str, requests: dict) -> dict:
         """``requests``: frame -> list of windows ``(key, x_px, y_px, radius_px)``; returns
-        ``{(frame, key): {column: array}}``, the candidates within each window (None where the
-        source has no such frame)."""
+        ``{(frame, window): {column: array}}``, the candidates within each window (None where
+        the source has no such frame)."""
         new = {f: [q for q in qs if (view, f, q) not in self._found] for f, qs in requests.items()}
         new = {f: qs for f, qs in new.items() if qs}
         if new:
@@ -967,6 +967,8 @@ class WindowSource:
             from .detect import DetectionSettings, window_arrays
             det = self.detection if self.detection is not None else DetectionSettings()
             self.n_reads += 1
+            log.info("track-capture: reading %s's frames again for %d search window(s) in %d frame(s)", view,
+                     sum(len(q) for q in new.values()), len(new))
             last = max(new)
             for fr in iter_frames(self.sources[view], channel=self.channel, workers=self.workers):
                 if fr.index > last:

@@ -76,9 +76,11 @@ class ViewGeometry:
         return d / np.linalg.norm(d, axis=1, keepdims=True)
 
     def project(self, X: np.ndarray) -> np.ndarray:
-        """World points (n, 3) -> raw pixels (n, 2) through the full camera model."""
+        """World points (n, 3) -> raw pixels (n, 2) through the full camera model (a point in
+        the camera's own plane, z = 0, has no image: inf or NaN, without a warning)."""
         Xc = np.asarray(X, float).reshape(-1, 3) @ self.R.T + self.t
-        return self.to_pixels(Xc[:, :2] / Xc[:, 2:3])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return self.to_pixels(Xc[:, :2] / Xc[:, 2:3])
 
 
 # --- building views ----------------------------------------------------------------------------
