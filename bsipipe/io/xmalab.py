@@ -20,7 +20,6 @@ trimming the names, so plain commas (written here, as deepxromm and DeepLabCut's
 
 from __future__ import annotations
 
-import io
 import os
 import re
 from typing import Sequence
