@@ -31,7 +31,10 @@ leaves independent values of either sign.  These effects leave structure instead
     departures from their own smooth tracks (Savitzky-Golay, the offsets taken out and the
     tracks smoothed again until they settle), kept where it stands out of the markers'
     scatter, subtracted before triangulating.  Only the part that is not smooth in time is
-    seen: a jolt's slow part is the markers' common motion.  Outside evidence: the 2-D tracks
+    seen: a jolt's slow part is the markers' common motion.  Refined by a rank-1 motion model
+    (:func:`low_rank_frame_shifts`) or read off the still markers (:func:`still_frame_shifts`),
+    whichever leaves the smaller ray gaps, judged after the clock where the spec has one.
+    Outside evidence: the 2-D tracks
     themselves (BIC of a common offset per frame against none, on the markers' departures
     from their smooth tracks), and the ray gaps must fall too (a shift that both views see
     alike is the head moving, not a jolt).  Parameters: ``frame_shifts`` (per view, how many
@@ -625,6 +628,31 @@ def low_rank_frame_shifts(x: np.ndarray, start: np.ndarray, n_iter: int = 50, mi
         return o
     o = o - o[enough].mean(axis=0)
     return o + _still_group(x, o, enough, min_markers)
+
+
+def still_frame_shifts(x: np.ndarray, start: np.ndarray, min_markers: int = 3) -> np.ndarray:
+    """A view's frame shifts (F, 2) px read off the markers that stand still: the references
+    fixed to the skull move only with the picture, so a frame's shift is the median over them
+    of their departures from their own median positions, whatever the others do (a motion no
+    model fits, a clock offset between the views, cannot leak in).  Still markers: with the
+    shifts ``start`` taken out, those whose median distance from their median position is at
+    most twice the ``min_markers``-th smallest such spread, or 0.15 px (at least
+    ``min_markers``; else ``start`` is returned).  Frames where fewer than 2 of them are seen
+    keep ``start``."""
+    F, M = x.shape[:2]
+    with np.errstate(all="ignore"):
+        r = x - start[:, None, :]
+        spread = np.nanmedian(np.hypot(*(r - np.nanmedian(r, axis=0)).transpose(2, 0, 1)), axis=0)
+    ok = np.isfinite(spread)
+    if ok.sum() < min_markers:
+        return np.array(start, float, copy=True)
+    s_k = np.sort(spread[ok])[min_markers - 1]
+    still = ok & (spread <= max(2.0 * s_k, 0.15))
+    dep = x[:, still] - np.nanmedian(x[:, still], axis=0)
+    n = np.isfinite(dep).all(axis=2).sum(axis=1)
+    with np.errstate(all="ignore"):
+        o = np.nanmedian(dep, axis=1)
+    return np.where((n >= 2)[:, None] & np.isfinite(o), o, start)
 
 
 def _still_group(x: np.ndarray, o: np.ndarray, enough: np.ndarray, min_group: int = 3) -> np.ndarray:
@@ -1284,9 +1312,20 @@ def stereo_fit(d: StereoData, spec: StereoSpec, *, max_offset_s: float | None = 
             la, lb = low_rank_frame_shifts(xa, oa), low_rank_frame_shifts(xb, ob)
             cand["rank-1 motion"] = (np.where((oa != 0).any(axis=1)[:, None], la, 0.0),
                                      np.where((ob != 0).any(axis=1)[:, None], lb, 0.0))
+            cand["still markers"] = (np.where((oa != 0).any(axis=1)[:, None], still_frame_shifts(xa, la), 0.0),
+                                     np.where((ob != 0).any(axis=1)[:, None], still_frame_shifts(xb, lb), 0.0))
+            clock = spec.time_offset or spec.clock_drift or fixed_offset_s is not None
             for k, (sa, sb) in cand.items():
-                g = _triangulate(d.views, (xa - sa[:, None, :]).reshape(-1, 2),
-                                 (xb - sb[:, None, :]).reshape(-1, 2))["ray_gap_signed_mm"]
+                ua, ub = xa - sa[:, None, :], xb - sb[:, None, :]
+                if clock:
+                    # with a clock in the model the shifts are judged after it: a set of shifts
+                    # that soaks up part of the clock's gaps must not win for that (a motion no
+                    # one time course fits leaks into the rank-1 shifts, and with it the offset)
+                    dd = replace(d, xa=ua, xb=ub)
+                    off = (float(fixed_offset_s) if fixed_offset_s is not None else
+                           estimate_time_offset(dd, max_offset_s, ub)["view_time_offset_s"])
+                    ub = _pchip_at(d.tb, ub, (d.ta - off) / (1.0 + float(fixed_drift or 0.0)))
+                g = _triangulate(d.views, ua.reshape(-1, 2), ub.reshape(-1, 2))["ray_gap_signed_mm"]
                 rss[k] = float(np.nansum(g ** 2))
         how = min(rss, key=rss.get) if rss else "smooth tracks"
         oa, ob = cand[how]
