@@ -666,7 +666,9 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
                 if e["view"] == pair[1] and e.get("marker") in names:
                     e["marker"] = names[e["marker"]]
             cross_view = {"view": pair[1], "renamed": names,
-                          "rule": "median |ray gap| under 1 mm, pairing of least total median gap"}
+                          "rule": "median |ray gap| (least over whole-frame shifts of up to 3 frames), pairing of least "
+                                   "total cost, a track left unpaired above 5x the lower quartile of the best costs "
+                                   "(0.3-1 mm)"}
         sub = table[table["view"].isin(pair)].copy()
         if sub["time_s"].isna().all():
             sub["time_s"] = sub["frame"].astype(float)     # no clock: time in frames

@@ -1587,35 +1587,70 @@ def _summary(f: StereoFit) -> dict:
 
 
 def match_tracks_across_views(table: pd.DataFrame, views: tuple[ViewGeometry, ViewGeometry],
-                              max_gap_mm: float = 1.0, min_common: int = 3) -> dict[str, str]:
+                              max_gap_mm: float = 1.0, min_gap_mm: float = 0.3, min_common: int = 3,
+                              max_shift_frames: int = 3) -> dict[str, str]:
     """Names for view B's automatic tracks that make them the same markers as view A's.
 
-    Without seeds each view names its tracks on its own; the epipolar geometry pairs them:
-    the cost of pairing track a (view A) with track b (view B) is the median absolute ray
-    gap over the frames both see (at least ``min_common``); the pairing of least total cost
-    (``linear_sum_assignment``) with a median gap under ``max_gap_mm`` is kept.  Returns
-    ``{B name: A name}``; an unpaired B track keeps its name, prefixed with B's view.
+    Without seeds each view names its tracks on its own; the epipolar geometry pairs them.
+    The cost of pairing track a (view A) with track b (view B) is the median absolute ray gap
+    over the frames both see (at least ``min_common``), the least of it over whole-frame
+    shifts of B's frames up to ``max_shift_frames`` (a clock offset between the views, not yet
+    found, widens a moving marker's true gaps; the nearest whole-frame shift takes most of it
+    out).  The pairing is the one of least total cost (``linear_sum_assignment``) in which
+    every B track may also stay unpaired at cost ``tau``: a track does not take a poor partner,
+    nor push another track off its good one, only because every track must take something
+    (static spots seen in both views, a speck of dust or a bone edge, would otherwise pair
+    with anything near their rays, and with the markers).  ``tau`` is five times the median
+    over B's tracks of their cheapest cost (its lower quartile: the pairs that fit best, whatever
+    the clutter), within ``[min_gap_mm, max_gap_mm]``: the noise of true pairs sets it, a
+    calibration with large gaps widens it.  Returns ``{B name: A
+    name}``; an unpaired B track keeps its name, prefixed with B's view.
     """
     from scipy.optimize import linear_sum_assignment
-    from .triangulate import ray_gaps
     va, vb = views
     ta = table[(table["view"] == va.name) & table["found"]]
     tb = table[(table["view"] == vb.name) & table["found"]]
     na, nb = list(dict.fromkeys(ta["marker"])), list(dict.fromkeys(tb["marker"]))
-    cost = np.full((len(nb), len(na)), np.inf)
-    ga = {m: g.set_index("frame")[["x_px", "y_px"]] for m, g in ta.groupby("marker")}
-    gb = {m: g.set_index("frame")[["x_px", "y_px"]] for m, g in tb.groupby("marker")}
-    for i, b in enumerate(nb):
-        for j, a in enumerate(na):
-            common = ga[a].index.intersection(gb[b].index)
-            if len(common) < min_common:
-                continue
-            g = ray_gaps(views, ga[a].loc[common].to_numpy(), gb[b].loc[common].to_numpy())
-            cost[i, j] = float(np.median(np.abs(g)))
     out = {b: f"{vb.name}:{b}" for b in nb}
-    if len(nb) and len(na):
-        r, c = linear_sum_assignment(np.where(np.isfinite(cost), cost, 1e9))
-        for i, j in zip(r, c):
-            if cost[i, j] < max_gap_mm:
-                out[nb[i]] = na[j]
+    if not (na and nb):
+        return out
+    frames = np.union1d(ta["frame"].to_numpy(), tb["frame"].to_numpy())
+    F = len(frames)
+
+    def rays(t, view, names):
+        # (F, n, 3) ray directions on the common frame grid, NaN where a track is not seen
+        d = np.full((F, len(names), 3), np.nan)
+        fi = np.searchsorted(frames, t["frame"].to_numpy())
+        mi = pd.Index(names).get_indexer(t["marker"])
+        d[fi, mi] = _ray_dirs(view, t[["x_px", "y_px"]].to_numpy(float))
+        return d
+
+    da, db = rays(ta, va, na), rays(tb, vb, nb)
+    base = vb.centre_mm - va.centre_mm
+    cost = np.full((len(nb), len(na)), np.inf)
+    with np.errstate(all="ignore"):
+        for k in range(-max_shift_frames, max_shift_frames + 1):
+            # A's frame f with B's frame f + k (whole frames of the common grid)
+            a_sl = slice(max(0, -k), F - max(0, k))
+            b_sl = slice(max(0, k), F - max(0, -k))
+            if a_sl.stop - a_sl.start < min_common:
+                continue
+            for j0 in range(0, len(na), 16):       # chunks of A's tracks: memory stays (F, 16, nB)
+                g = np.abs(_gaps_from_dirs(da[a_sl, j0:j0 + 16, None, :], db[b_sl, None, :, :], base))
+                n = np.isfinite(g).sum(axis=0)
+                med = np.where(n >= min_common, np.nanmedian(g, axis=0), np.inf)      # (16, nB)
+                cost[:, j0:j0 + 16] = np.minimum(cost[:, j0:j0 + 16], med.T)
+    best = cost.min(axis=1)
+    best = best[np.isfinite(best)]
+    if not len(best):
+        return out
+    tau = float(np.clip(5.0 * np.percentile(best, 25), min_gap_mm, max_gap_mm))
+    log.debug("cross-view pairing: best costs %s, tau %.3f", np.round(np.sort(best), 3).tolist(), tau)
+    big = 1e9
+    miss = np.full((len(nb), len(nb)), big)
+    np.fill_diagonal(miss, tau)
+    r, c = linear_sum_assignment(np.hstack([np.where(cost < tau, cost, big), miss]))
+    for i, j in zip(r, c):
+        if j < len(na) and cost[i, j] < tau:
+            out[nb[i]] = na[j]
     return out
