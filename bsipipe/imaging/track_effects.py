@@ -1063,6 +1063,7 @@ def _refind(d: StereoData, x: tuple, shifts: tuple, j: int, idx: np.ndarray, tol
     the one nearest the pair taken last (the first: the nearest rays).  ``exclude``: view index ->
     ``(x, y, radius)``, a spot whose candidates are not taken (what held the track).  Returns
     the picks (index into ``idx``; per view the positions and the candidates' columns) or None."""
+    from .track import _apart
     src = d.windows
     dpx = src.diameter_px
     per_view = []
@@ -1079,7 +1080,7 @@ def _refind(d: StereoData, x: tuple, shifts: tuple, j: int, idx: np.ndarray, tol
                 continue
             xy = np.column_stack([c["x_px"], c["y_px"]])
             others = np.delete(raw_own[idx[i]], j, axis=0)
-            free = _apart_from(xy, others[np.isfinite(others).all(axis=1)], max(1.0, dpx))
+            free = _apart(xy, others[np.isfinite(others).all(axis=1)], max(1.0, dpx))
             if exclude and k in exclude:
                 ex, ey, er = exclude[k]
                 free &= np.hypot(xy[:, 0] - shifts[k][idx[i], 0] - ex, xy[:, 1] - shifts[k][idx[i], 1] - ey) > er
@@ -1115,13 +1116,6 @@ def _refind(d: StereoData, x: tuple, shifts: tuple, j: int, idx: np.ndarray, tol
         out[f"xy{k}"] = np.array([fr[0][q] for fr, q in sel])
         out[f"cols{k}"] = {c: np.array([fr[1][c][q] for fr, q in sel]) for c in CAPTURE_COLUMNS}
     return out
-
-
-def _apart_from(xy: np.ndarray, points: np.ndarray, radius: float) -> np.ndarray:
-    """(n,) True for each of ``xy`` farther than ``radius`` from every one of ``points``."""
-    if len(points) == 0 or len(xy) == 0:
-        return np.ones(len(xy), bool)
-    return (((xy[:, None, :] - points[None, :, :]) ** 2).sum(-1) > radius ** 2).all(axis=1)
 
 
 def _gap_noise(g: np.ndarray) -> float:
@@ -1217,13 +1211,15 @@ def find_captures(d: StereoData, xa: np.ndarray, xb: np.ndarray, shifts: tuple |
             if ch2:
                 idx, r, changed = idx2, r2, ch2
         done.setdefault(j, set()).update(idx.tolist())
-        before = _gaps(replace(d, xa=xa), xb)[idx, j]
+        cells = np.zeros(g.shape, bool)
+        cells[idx, j] = True
+        before = _gaps(replace(d, xa=xa), xb, cells)[idx, j]
         drop = np.setdiff1d(np.arange(len(idx)), r["i"])
         for k, moved in changed:
             own = (xa, xb)[k]
             own[idx[r["i"]], j] = r[f"xy{k}"]
             own[idx[drop], j] = np.nan
-        after = _gaps(replace(d, xa=xa), xb)[idx, j]
+        after = _gaps(replace(d, xa=xa), xb, cells)[idx, j]
         for k, moved in changed:
             out.append({"marker": d.markers[j], "view": d.views[k].name, "first_frame": int(d.frames[idx[0]]),
                         "last_frame": int(d.frames[idx[-1]]), "n_refound": int(moved.sum()),
