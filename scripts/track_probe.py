@@ -7,7 +7,11 @@ markers' paths, 35 % darker than the background: harsher than a bead), ``dust2``
 bead-like specks per view scattered over the markers' region), ``lag05`` (cam2's
 intensifier lag: each frame half the previous), ``flicker`` (15 % frame-to-frame gain),
 ``interlace`` (odd lines from the previous frame), ``saltpepper`` (2,000 impulse pixels per
-frame), ``late`` (cam2 starts 6 frames late).  The twin is the track benchmark's
+frame), ``late`` (cam2 starts 6 frames late), ``invert`` (bright beads), ``vignette``
+(brightness falling to 35 % at the field's edge), ``noise2`` (extra pixel noise, sd 4),
+``bits16`` (10-bit data in 16-bit files), ``blur`` (a further Gaussian blur of 1.2 px),
+``dup`` (cam2 repeats every 7th frame and drops the next), ``log`` (log-converted 16-bit
+frames).  The twin is the track benchmark's
 (``results/bench_cache/twin200``: 200 frames per view at 4 frames/s, its seeds and true
 cameras); the perturbed frames go to ``/tmp/bsipipe_probe/EFFECT`` and are tracked by the
 current code with ``bsipipe track`` (``--old``: the output goes to ``track_old``, for a
@@ -92,7 +96,42 @@ def dust2(v, imgs):
         m[sl] *= 1 - a * np.exp(-((xx[sl] - x) ** 2 + (yy[sl] - y) ** 2) / (2 * sg ** 2))
     return [np.clip(np.rint(im.astype(np.float32) * m), 0, 255).astype(np.uint8) for im in imgs]
 
-EFFECTS = {"dust2": dust2, "late": late, "none": lambda v, i: i, "dust": dust, "lag05": lag(0.5), "flicker": flicker, "interlace": interlace,
+def invert(v, imgs):
+    # frames exported inverted (a processed radiograph): the beads are bright
+    return [255 - im for im in imgs]
+
+def vignette(v, imgs):
+    # an intensifier's brightness falling to 35 % at the field's edge
+    yy, xx = np.mgrid[:1024, :1024].astype(np.float32)
+    g = 1 - 0.65 * np.clip(((xx - 512) ** 2 + (yy - 512) ** 2) / 512 ** 2, 0, 1)
+    return [np.clip(np.rint(im * g), 0, 255).astype(np.uint8) for im in imgs]
+
+def noise2(v, imgs):
+    # extra Gaussian pixel noise of sd 4 grey levels (about twice the twin's)
+    return [np.clip(np.rint(im + rng.normal(0, 4, im.shape)), 0, 255).astype(np.uint8) for im in imgs]
+
+def bits16(v, imgs):
+    # 10-bit data in 16-bit files, scaled by 4 with 2 bits of fresh noise, offset 100
+    return [(im.astype(np.uint16) * 4 + 100 + rng.integers(0, 4, im.shape)).astype(np.uint16) for im in imgs]
+
+def blur(v, imgs):
+    # intensifier unsharpness: a Gaussian blur of sigma 1.2 px
+    return [cv2.GaussianBlur(im, (0, 0), 1.2) for im in imgs]
+
+def dup(v, imgs):
+    # cam2's frame grabber repeats every 7th frame and drops the next (the count stays the same)
+    if v != "cam2": return imgs
+    out = list(imgs)
+    for k in range(7, len(imgs) - 1, 7):
+        out[k] = imgs[k - 1]
+    return out
+
+def logimg(v, imgs):
+    # the log of the intensity (line integrals of attenuation, as a log-converted radiograph), 16-bit
+    return [np.rint(np.log(im.astype(np.float64) + 1) / np.log(256) * 65535).astype(np.uint16) for im in imgs]
+
+EFFECTS = {"log": logimg, "invert": invert, "vignette": vignette, "noise2": noise2, "bits16": bits16, "blur": blur, "dup": dup,
+           "dust2": dust2, "late": late, "none": lambda v, i: i, "dust": dust, "lag05": lag(0.5), "flicker": flicker, "interlace": interlace,
            "saltpepper": saltpepper}
 
 

@@ -90,6 +90,10 @@ class TrackingConfig(StrictModel):
         2.5, description="seeded mode: a marker nothing matched is looked for again in its gate with this window "
                          "threshold (robust sd), taken only if it passes min_snr and has the marker's own amplitude "
                          "and width (status 'weak'); null: no second look")
+    second_look_min_snr: PositiveFloat = Field(
+        2.0, description="seeded mode: the SNR (amplitude / pixel noise) a second look's candidate needs, at most "
+                         "the detector's min_snr: within a pixel of the prediction, with the marker's own amplitude "
+                         "and width as the test, a fainter find is safe")
 
 
 class TrackConfig(StrictModel):

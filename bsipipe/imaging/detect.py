@@ -1269,6 +1269,12 @@ class _DarkObjects:
         bx = xs // self.f if w == ws * self.f else np.minimum(xs * ws // w, ws - 1)
         return by, bx
 
+    def core_at(self, xs, ys) -> np.ndarray:
+        """Whether full-size pixels (xs, ys) (integer arrays) lie in an object itself (its
+        reduced pixel dark; not grown)."""
+        by, bx = self._block(np.asarray(xs), np.asarray(ys))
+        return self.small[by, bx]
+
     def at(self, xs, ys) -> np.ndarray:
         """Whether full-size pixels (xs, ys) (integer arrays that broadcast) are in a grown object."""
         xs, ys = np.asarray(xs), np.asarray(ys)

@@ -63,6 +63,7 @@ from scipy.optimize import linear_sum_assignment
 from .detect import COLUMNS as DETECT_COLUMNS
 from .detect import (DetectionSettings, FieldOfView, Polarity, detect_arrays, detect_markers, find_field_of_view,
                      window_arrays, window_strip_px)
+from .detect import _DarkObjects
 
 log = logging.getLogger(__name__)
 
@@ -99,7 +100,8 @@ class TrackSettings:
     the last ``max_extrapolation_frames`` frames, is looked for once more within
     ``second_look_radius_px`` (default ``max(1, d/4)``) of its prediction with this lower
     window threshold (robust sd of the window's smoothed top-hat, instead of the detector's
-    ``window_k_sigma``); a candidate is taken only if it also passes ``min_snr`` and looks
+    ``window_k_sigma``); a candidate is taken only if it also passes ``second_look_min_snr``
+    (2; the detector's ``min_snr`` where that is lower) and looks
     like the whole marker (``appearance`` once the marker has 3 measurements, amplitude at
     least ``partial_fraction`` of its median).  A threshold over a whole search window must
     hold its false alarms down over every pixel of it, and an instrument's edge or bone
@@ -124,6 +126,7 @@ class TrackSettings:
     appearance: tuple[float, float, float, float] = (0.3, 2.5, 0.6, 1.6)
     second_look_k_sigma: float | None = 2.5
     second_look_radius_px: float | None = None
+    second_look_min_snr: float = 2.0
     frame_shift: bool = True
     sweep_every_frames: int = 20
     back_frames: int = 60
@@ -379,6 +382,7 @@ def _search_frame(img, f: int, live: list[_Marker], pred, gates, diameter_px: fl
     Returns per-marker arrays ``x_px, y_px, snr, amplitude,
     area_px, sigma_px, found, gate_px``, ``pred`` (n, 2) and the ``status`` list."""
     whole = cand
+    objects: dict = {}
 
     def first_pass(pred):
         c = whole if whole is not None else window_arrays(img, pred, gates, diameter_px, polarity, detection, fov)
@@ -391,6 +395,8 @@ def _search_frame(img, f: int, live: list[_Marker], pred, gates, diameter_px: fl
         if taken is not None:
             # candidates other markers already hold in this frame (within a diameter) are not free
             compat &= _apart(cxy, taken, max(1.0, diameter_px))[None, :]
+        if polarity == "dark" and len(cxy):
+            _not_in_objects(img, diameter_px, live, cxy, compat, objects)
         return c, cxy, *_assign(live, pred, gates, cxy, compat, miss_cost=1.0)
 
     cand, cxy, match, d2 = first_pass(pred)
@@ -464,6 +470,30 @@ def _search_frame(img, f: int, live: list[_Marker], pred, gates, diameter_px: fl
     val["pred"] = np.asarray(pred, float).reshape(nm, 2)
     val["status"] = status
     return val
+
+
+def _not_in_objects(img, diameter_px: float, live: list[_Marker], cxy: np.ndarray, compat: np.ndarray,
+                    objects: dict) -> None:
+    """A lost marker is not found again inside a large dark object (an instrument's shadow,
+    :func:`~bsipipe.imaging.detect.dark_objects`, the object itself, not grown): a bead hidden
+    behind the indentor is not seen through it, and the top-hat's responses along the rod's
+    blurred edges or in its noise look like beads.  ``compat`` (markers, candidates) is updated in place; the
+    objects are found once per frame (``objects``), and only when a lost marker has a
+    candidate."""
+    lost = np.array([m.lost_since is not None for m in live], bool)
+    if not lost.any() or not compat[lost].any():
+        return
+    if "found" not in objects:
+        objects["found"] = _DarkObjects.find(img, diameter_px)
+    dk = objects["found"]
+    if dk is None:
+        return
+    h, w = np.shape(img)
+    xi = np.clip(np.rint(cxy[:, 0]).astype(int), 0, w - 1)
+    yi = np.clip(np.rint(cxy[:, 1]).astype(int), 0, h - 1)
+    inside = dk.core_at(xi, yi)        # the object itself, not grown: a bead coming out beside it is whole
+    if inside.any():
+        compat[np.ix_(lost, inside)] = False
 
 
 def _matched_d2(d2: np.ndarray, match: np.ndarray) -> float:
@@ -543,7 +573,8 @@ def _second_look(frame: int, img, live: list[_Marker], pred, gates, cand: dict, 
     weak = np.zeros(len(live), bool)
     if len(miss) == 0 or settings.second_look_k_sigma >= detection.window_k_sigma:
         return cand, match, d2, weak
-    low = detection.updated(window_k_sigma=float(settings.second_look_k_sigma))
+    low = detection.updated(window_k_sigma=float(settings.second_look_k_sigma),
+                            min_snr=min(detection.min_snr, float(settings.second_look_min_snr)))
     more = window_arrays(img, pred[miss], gates[miss], diameter_px, polarity, low, fov)
     xy = np.column_stack([more["x_px"], more["y_px"]])
     if len(xy) == 0:
