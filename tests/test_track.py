@@ -401,6 +401,40 @@ def test_cli_track_real_frame(tmp_path):
     assert [(w["code"], w["views"]) for w in j["warnings"]] == [("lossy-frames", {"cam1": "JPEG files"})]
 
 
+def test_cli_track_polarity_from_the_seeds(tmp_path):
+    """The real X-ray frame inverted (a processed radiograph: beads bright) and tracked
+    without --polarity: the seeds show bright markers, so they are tracked as bright, with a
+    warning, at the centres of the frame as recorded (within 0.01 px; the Gaussian fit sees
+    the same pixels mirrored in grey level).  As recorded, without --polarity: dark, no
+    warning.  With --polarity dark on the inverted frame: the seeds find nothing, exit 1
+    naming --polarity, nothing written."""
+    import cv2
+    seeds = _xray_seeds(tmp_path)
+    img = cv2.imread(str(XRAY / "sample_frame.jpg"), cv2.IMREAD_GRAYSCALE)
+    res = {}
+    for name, im in (("raw", img), ("inverted", 255 - img)):
+        d = tmp_path / name
+        d.mkdir()
+        cv2.imwrite(str(d / "frame.png"), im)
+        out = tmp_path / f"out_{name}"
+        r = CliRunner().invoke(cli, ["track", "--view", f"cam1={d}", "--diameter-px", "4", "--seeds", str(seeds),
+                                     "-o", str(out)])
+        assert r.exit_code == 0, r.output
+        j = json.loads((out / "track.json").read_text())
+        res[name] = pd.read_csv(out / "markers2d.csv").sort_values("marker")
+        assert res[name]["found"].all()
+        assert j["polarity"] == ("dark" if name == "raw" else "bright")
+        assert j["polarity_source"].startswith("auto: from the seeds")
+        assert ("bright-markers" in [w["code"] for w in j["warnings"]]) == (name == "inverted")
+    e = np.hypot(res["raw"]["x_px"].to_numpy() - res["inverted"]["x_px"].to_numpy(),
+                 res["raw"]["y_px"].to_numpy() - res["inverted"]["y_px"].to_numpy())
+    assert e.max() < 0.01
+    r = CliRunner().invoke(cli, ["track", "--view", f"cam1={tmp_path / 'inverted'}", "--diameter-px", "4",
+                                 "--polarity", "dark", "--seeds", str(seeds), "-o", str(tmp_path / "out_dark")])
+    assert r.exit_code == 1 and "--polarity" in r.output       # a ProcessingError: the seeds found nothing
+    assert not (tmp_path / "out_dark").exists()
+
+
 def test_cli_track_xmalab_seeds_and_config(tmp_path):
     """Seeds straight from XMALab's 2-D CSV (camN = the N-th view), and the YAML form."""
     frames = tmp_path / "frames"

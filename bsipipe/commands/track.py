@@ -102,7 +102,10 @@ class TrackConfig(StrictModel):
     views: dict[str, str] = Field(min_length=1, description="view name -> frames (folder, TIFF, video, DICOM)")
     calibration: str | None = Field(None, description="calibration.json of `bsipipe calibrate` (stereo for 3-D)")
     seeds: str | None = Field(None, description="seeds.csv view,marker,x_px,y_px (or an XMALab 2-D CSV)")
-    polarity: Literal["dark", "bright"] = "dark"
+    polarity: Literal["dark", "bright", "auto"] = Field(
+        "auto", description="markers darker or brighter than their surroundings; auto: with seeds, the polarity "
+                            "in which more seeded markers are found in the first frame (dark on a tie), without "
+                            "seeds dark (beads are dark in raw X-ray frames)")
     diameter_px: PositiveFloat | None = Field(None, description="marker diameter; default from the seeds, else 4")
     fps: PositiveFloat | None = Field(None, description="frame rate where the source has no time stamps")
     channel: int | None = Field(None, ge=0, le=2, description="colour frames: use this channel (default luma)")
@@ -322,6 +325,28 @@ def prefetched(frames, depth: int = 2):
     finally:
         stop.set()
         t.join(timeout=5.0)
+
+
+def _polarity_from_seeds(views: dict[str, str], seeds: pd.DataFrame, diameter_px: float | None,
+                         channel) -> tuple[str, str, dict]:
+    """Dark or bright markers, from the seeds: each seeded view's first frame is searched
+    around every seed (:func:`~bsipipe.imaging.detect.refine_at`, 6 px) for a dark and for a
+    bright marker; the polarity that finds more of them wins, dark on a tie (raw X-ray frames
+    show beads dark; an inverted export or a processed radiograph shows them bright).
+    Returns the polarity, a note for track.json and the counts per polarity."""
+    from ..imaging.detect import refine_at
+    from ..io.images import iter_frames
+    n = {"dark": 0, "bright": 0}
+    total = 0
+    for v, g in seeds.groupby("view", sort=False):
+        fr = next(iter(iter_frames(views[v], channel=channel)))
+        xy = g[["x_px", "y_px"]].to_numpy()
+        total += len(xy)
+        for p in n:
+            n[p] += int(refine_at(fr.image, xy, diameter_px or 4.0, p, search_radius_px=6.0)["found"].sum())
+    pol = "bright" if n["bright"] > n["dark"] else "dark"
+    return pol, (f"auto: from the seeds, {n['dark']} of {total} seeded markers found dark and {n['bright']} "
+                 f"bright in the first frame"), n
 
 
 def _estimate_diameter(path, seeds: pd.DataFrame, polarity: str, channel) -> float:
@@ -546,6 +571,16 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     rig = None
     if cfg.calibration:
         rig, pair = _read_calibration(cfg.calibration, views)
+    polarity_note = "given"
+    polarity_counts = None
+    if cfg.polarity == "auto":
+        if seed_df is not None:
+            pol, polarity_note, polarity_counts = _polarity_from_seeds(cfg.views, seed_df, cfg.diameter_px,
+                                                                       cfg.channel)
+        else:
+            pol, polarity_note = "dark", "auto: no seeds, dark (beads are dark in raw X-ray frames)"
+        cfg = cfg.model_copy(update={"polarity": pol})
+        log.info("track: markers %s (%s)", pol, polarity_note)
     d = cfg.diameter_px
     diameter_note = "given"
     if d is None:
@@ -600,6 +635,12 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     fit = None
     cross_view = None
     warnings: list[dict] = []
+    if polarity_counts is not None and cfg.polarity == "bright":
+        from ..quality import warning
+        warnings.append(warning(
+            "bright-markers", f"track: the seeded markers are brighter than their surroundings ({polarity_note}; "
+            "raw X-ray frames show steel beads dark: inverted or processed frames?): tracked as bright markers "
+            "(--polarity dark to override)", log, **polarity_counts))
     counts = {v: info[v]["n_frames"] for v in views}
     missing = {}
     for v, g in table.groupby("view", sort=False):
@@ -820,7 +861,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     result: dict = {
         "views": info,
         "xmalab_cameras": {f"cam{i + 1}": v for i, v in enumerate(views)},
-        "diameter_px": d, "diameter_source": diameter_note, "polarity": cfg.polarity,
+        "diameter_px": d, "diameter_source": diameter_note, "polarity": cfg.polarity, "polarity_source": polarity_note,
         "markers": markers,
         "events": events,
         "warnings": warnings,
