@@ -349,19 +349,50 @@ def _polarity_from_seeds(views: dict[str, str], seeds: pd.DataFrame, diameter_px
                  f"bright in the first frame"), n
 
 
-def _estimate_diameter(path, seeds: pd.DataFrame, polarity: str, channel) -> float:
-    """Marker diameter from the seeds of one view: 2.5 times the median fitted Gaussian
-    sigma of the seeded markers in the first frame (a bead of diameter d blurred by
-    sigma_b gives sigma ~ sqrt((d/4)^2 + sigma_b^2)), clipped to 2..40 px."""
+def _estimate_diameter(path, seeds: pd.DataFrame, polarity: str, channel) -> tuple[float, str]:
+    """Marker diameter from the seeds of one view, and a note: 2.5 times the median fitted
+    Gaussian sigma of the seeded markers in the first frame (a bead of diameter d blurred by
+    sigma_b gives sigma ~ sqrt((d/4)^2 + sigma_b^2)), clipped to 2..40 px.
+
+    Markers of two sizes (the deep 0.5 mm beads and the 1 mm references) are found at one
+    diameter near the larger size, not near the smaller: where seeds find no marker at the
+    median's diameter, they are looked for at 1.5, 2, 3 and 4 times it, and if the diameter
+    of those found (2.5 x their median sigma) finds more seeds, among them every seed found
+    before, it is taken.  (A bead fitted with a diameter over about twice its own is
+    measured less well: beads of more than two sizes apart need --diameter-px or separate
+    runs.)"""
     from ..imaging.detect import refine_at
     from ..io.images import iter_frames
     fr = next(iter(iter_frames(path, channel=channel)))
-    r = refine_at(fr.image, seeds[["x_px", "y_px"]].to_numpy(), 4.0, polarity, search_radius_px=6.0)
-    s = r["sigma_px"].to_numpy()
-    s = s[np.isfinite(s)]
-    if len(s) == 0:
-        return 4.0
-    return float(np.clip(2.5 * np.median(s), 2.0, 40.0))
+    xy = seeds[["x_px", "y_px"]].to_numpy()
+
+    def found_at(d, pts):
+        r = refine_at(fr.image, pts, d, polarity, search_radius_px=max(6.0, 0.5 * d))
+        return r["found"].to_numpy(bool) & np.isfinite(r["sigma_px"].to_numpy()), r["sigma_px"].to_numpy()
+
+    ok, s = found_at(4.0, xy)
+    if not ok.any():
+        return 4.0, "default: no seeded marker measured in the first frame"
+    d = float(np.clip(2.5 * np.median(s[ok]), 2.0, 40.0))
+    note = f"estimated from the seeds ({ok.sum()} of {len(xy)}; 2.5 x median fitted sigma)"
+    hit, _ = found_at(d, xy)
+    if hit.all():
+        return d, note
+    miss = np.flatnonzero(~hit)
+    sig = []
+    for f in (1.5, 2.0, 3.0, 4.0):
+        big, sb = found_at(min(40.0, f * d), xy[miss])
+        sig.extend(sb[big])
+        miss = miss[~big]
+        if len(miss) == 0:
+            break
+    if sig:
+        d2 = float(np.clip(2.5 * np.median(sig), 2.0, 40.0))
+        hit2, _ = found_at(d2, xy)
+        if hit2.sum() > hit.sum() and hit2[hit].all():
+            return d2, (f"{note}: {d:.2f} px found {hit.sum()} of {len(xy)} seeded markers; {d2:.2f} px, from the "
+                        f"{len(sig)} larger ones, finds {hit2.sum()}")
+    return d, note
 
 
 def _ray_gap_warnings(points3d: pd.DataFrame, max_mm: float | None) -> list[dict]:
@@ -586,8 +617,8 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     if d is None:
         if seed_df is not None:
             v0 = seed_df["view"].iloc[0]
-            d = _estimate_diameter(cfg.views[v0], seed_df[seed_df["view"] == v0], cfg.polarity, cfg.channel)
-            diameter_note = f"estimated from the seeds of {v0} (2.5 x median fitted sigma)"
+            d, how = _estimate_diameter(cfg.views[v0], seed_df[seed_df["view"] == v0], cfg.polarity, cfg.channel)
+            diameter_note = f"{v0}: {how}"
         else:
             d = 4.0
             diameter_note = "default (no --diameter-px, no seeds)"
