@@ -435,6 +435,33 @@ def test_cli_track_polarity_from_the_seeds(tmp_path):
     assert not (tmp_path / "out_dark").exists()
 
 
+@pytest.mark.parametrize("bright", [False, True])
+def test_cli_track_polarity_without_seeds(tmp_path, bright):
+    """Automatic mode (no seeds) on five beads rendered dark (raw) and bright (inverted):
+    the first frame's whole-frame detections of SNR 6 or more in each polarity decide, and
+    every bead is tracked in every frame within 0.3 px either way."""
+    import cv2
+    rng = np.random.default_rng(4)
+    size, n = 160, 4
+    B = np.array([[40.3, 50.2], [110.6, 45.8], [80.1, 80.4], [50.7, 120.3], [120.2, 115.6]])
+    field = RayField(bead_camera(size))
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    truth = [B + [0.5 * i, 0.3 * i] for i in range(n)]
+    for i in range(n):
+        cv2.imwrite(str(frames / f"f{i}.png"), render_beads(truth[i], 5.0, size, rng, field=field, bright=bright))
+    out = tmp_path / "out"
+    r = CliRunner().invoke(cli, ["track", "--view", f"cam1={frames}", "--diameter-px", "5", "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    j = json.loads((out / "track.json").read_text())
+    assert j["polarity"] == ("bright" if bright else "dark") and j["polarity_source"].startswith("auto: no seeds")
+    m2 = pd.read_csv(out / "markers2d.csv")
+    m2 = m2[m2["found"]]
+    assert len(m2) == 5 * n
+    for _, row in m2.iterrows():
+        assert np.hypot(*(truth[row["frame"]] - [row["x_px"], row["y_px"]]).T).min() < 0.3
+
+
 def test_cli_track_xmalab_seeds_and_config(tmp_path):
     """Seeds straight from XMALab's 2-D CSV (camN = the N-th view), and the YAML form."""
     frames = tmp_path / "frames"

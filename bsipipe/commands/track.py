@@ -104,8 +104,9 @@ class TrackConfig(StrictModel):
     seeds: str | None = Field(None, description="seeds.csv view,marker,x_px,y_px (or an XMALab 2-D CSV)")
     polarity: Literal["dark", "bright", "auto"] = Field(
         "auto", description="markers darker or brighter than their surroundings; auto: with seeds, the polarity "
-                            "in which more seeded markers are found in the first frame (dark on a tie), without "
-                            "seeds dark (beads are dark in raw X-ray frames)")
+                            "in which more seeded markers are found in the first frame (dark on a tie); without "
+                            "seeds, bright only where the first frames hold at least 3 bright markers of SNR 6 "
+                            "or more and twice as many as dark ones (beads are dark in raw X-ray frames)")
     diameter_px: PositiveFloat | None = Field(None, description="marker diameter; default from the seeds, else 4")
     fps: PositiveFloat | None = Field(None, description="frame rate where the source has no time stamps")
     channel: int | None = Field(None, ge=0, le=2, description="colour frames: use this channel (default luma)")
@@ -347,6 +348,24 @@ def _polarity_from_seeds(views: dict[str, str], seeds: pd.DataFrame, diameter_px
     pol = "bright" if n["bright"] > n["dark"] else "dark"
     return pol, (f"auto: from the seeds, {n['dark']} of {total} seeded markers found dark and {n['bright']} "
                  f"bright in the first frame"), n
+
+
+def _polarity_from_frames(views: dict[str, str], diameter_px: float | None, channel) -> tuple[str, str, dict]:
+    """Dark or bright markers without seeds: every view's first frame is searched whole
+    (:func:`~bsipipe.imaging.detect.detect_arrays`) for dark and for bright markers, and
+    those of SNR 6 or more are counted.  Steel beads in a raw frame give a dozen such dark
+    spots and hardly any bright ones; bright is taken only where it finds at least 3 and
+    twice as many as dark."""
+    from ..imaging.detect import detect_arrays
+    from ..io.images import iter_frames
+    n = {"dark": 0, "bright": 0}
+    for path in views.values():
+        img = next(iter(iter_frames(path, channel=channel))).image
+        for p in n:
+            n[p] += int((detect_arrays(img, diameter_px or 4.0, p)["snr"] >= 6.0).sum())
+    pol = "bright" if n["bright"] >= 3 and n["bright"] >= 2 * n["dark"] else "dark"
+    return pol, (f"auto: no seeds; {n['dark']} dark and {n['bright']} bright markers of SNR 6 or more in the first "
+                 f"frames"), n
 
 
 def _estimate_diameter(path, seeds: pd.DataFrame, polarity: str, channel) -> tuple[float, str]:
@@ -609,7 +628,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
             pol, polarity_note, polarity_counts = _polarity_from_seeds(cfg.views, seed_df, cfg.diameter_px,
                                                                        cfg.channel)
         else:
-            pol, polarity_note = "dark", "auto: no seeds, dark (beads are dark in raw X-ray frames)"
+            pol, polarity_note, polarity_counts = _polarity_from_frames(cfg.views, cfg.diameter_px, cfg.channel)
         cfg = cfg.model_copy(update={"polarity": pol})
         log.info("track: markers %s (%s)", pol, polarity_note)
     d = cfg.diameter_px
@@ -669,7 +688,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     if polarity_counts is not None and cfg.polarity == "bright":
         from ..quality import warning
         warnings.append(warning(
-            "bright-markers", f"track: the seeded markers are brighter than their surroundings ({polarity_note}; "
+            "bright-markers", f"track: the markers are brighter than their surroundings ({polarity_note}; "
             "raw X-ray frames show steel beads dark: inverted or processed frames?): tracked as bright markers "
             "(--polarity dark to override)", log, **polarity_counts))
     counts = {v: info[v]["n_frames"] for v in views}
