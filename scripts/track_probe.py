@@ -8,7 +8,9 @@ bead-like specks per view scattered over the markers' region), ``lag05`` (cam2's
 intensifier lag: each frame half the previous), ``flicker`` (15 % frame-to-frame gain),
 ``interlace`` (odd lines from the previous frame), ``saltpepper`` (2,000 impulse pixels per
 frame), ``late`` (cam2 starts 6 frames late), ``invert`` (bright beads), ``vignette``
-(brightness falling to 35 % at the field's edge), ``noise2`` (extra pixel noise, sd 4),
+(brightness falling to 35 % at the field's edge; applied to the recorded frames, so the air
+clipped at 255 becomes a flat grey without noise, which no detector would see in a real
+frame: automatic mode's whole-frame noise statistics are misled by it), ``noise2`` (extra pixel noise, sd 4),
 ``bits16`` (10-bit data in 16-bit files), ``blur`` (a further Gaussian blur of 1.2 px),
 ``dup`` (cam2 repeats every 7th frame and drops the next), ``log`` (log-converted 16-bit
 frames).  The twin is the track benchmark's
