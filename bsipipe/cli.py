@@ -230,7 +230,7 @@ def synth(config, out) -> None:
               help="NAME=PATH: a view's frames (folder of PNG/TIFF/JPEG, multi-page TIFF, AVI/MP4, DICOM); repeat.")
 @click.option("--calibration", type=click.Path(dir_okay=False), help="calibration.json (stereo: 3-D and the loop).")
 @click.option("--polarity", type=click.Choice(["dark", "bright", "auto"]),
-              help="Markers darker or brighter; auto (default): from the seeds, dark without seeds.")
+              help="Markers darker or brighter; auto (default): from the seeds, else from the first frames.")
 @click.option("--diameter-px", type=click.FloatRange(min=0, min_open=True),
               help="Marker diameter on screen (default: from the seeds, else 4).")
 @click.option("--seeds", type=click.Path(dir_okay=False),

@@ -337,14 +337,15 @@ def _polarity_from_seeds(views: dict[str, str], seeds: pd.DataFrame, diameter_px
     Returns the polarity, a note for track.json and the counts per polarity."""
     from ..imaging.detect import refine_at
     from ..io.images import iter_frames
-    n = {"dark": 0, "bright": 0}
-    total = 0
-    for v, g in seeds.groupby("view", sort=False):
-        fr = next(iter(iter_frames(views[v], channel=channel)))
-        xy = g[["x_px", "y_px"]].to_numpy()
-        total += len(xy)
-        for p in n:
-            n[p] += int(refine_at(fr.image, xy, diameter_px or 4.0, p, search_radius_px=6.0)["found"].sum())
+    firsts = [(next(iter(iter_frames(views[v], channel=channel))).image, g[["x_px", "y_px"]].to_numpy())
+              for v, g in seeds.groupby("view", sort=False)]
+    total = sum(len(xy) for _, xy in firsts)
+    # beads larger than 4 px may need a larger diameter to be found at all
+    for d in ([diameter_px] if diameter_px else [4.0, 8.0, 16.0]):
+        n = {p: sum(int(refine_at(img, xy, d, p, search_radius_px=max(6.0, 0.5 * d))["found"].sum())
+                    for img, xy in firsts) for p in ("dark", "bright")}
+        if n["dark"] or n["bright"]:
+            break
     pol = "bright" if n["bright"] > n["dark"] else "dark"
     return pol, (f"auto: from the seeds, {n['dark']} of {total} seeded markers found dark and {n['bright']} "
                  f"bright in the first frame"), n

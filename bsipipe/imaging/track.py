@@ -477,21 +477,35 @@ def _not_in_objects(img, diameter_px: float, live: list[_Marker], cxy: np.ndarra
     """A lost marker is not found again inside a large dark object (an instrument's shadow,
     :func:`~bsipipe.imaging.detect.dark_objects`, the object itself, not grown): a bead hidden
     behind the indentor is not seen through it, and the top-hat's responses along the rod's
-    blurred edges or in its noise look like beads.  ``compat`` (markers, candidates) is updated in place; the
-    objects are found once per frame (``objects``), and only when a lost marker has a
-    candidate."""
+    blurred edges or in its noise look like beads.  ``compat`` (markers, candidates) is
+    updated in place; the objects are found once per frame (``objects``), and only when a
+    lost marker has a candidate."""
     lost = np.array([m.lost_since is not None for m in live], bool)
-    if not lost.any() or not compat[lost].any():
+    if not lost.any():
         return
-    if "found" not in objects:
-        objects["found"] = _DarkObjects.find(img, diameter_px)
-    dk = objects["found"]
-    if dk is None:
+    test = compat[lost].any(axis=0)
+    if not test.any():
         return
     h, w = np.shape(img)
     xi = np.clip(np.rint(cxy[:, 0]).astype(int), 0, w - 1)
     yi = np.clip(np.rint(cxy[:, 1]).astype(int), 0, h - 1)
-    inside = dk.core_at(xi, yi)        # the object itself, not grown: a bead coming out beside it is whole
+    # the objects in a crop around the candidates, wider than the reach of the closing that
+    # finds them (a disk 16 diameters across): about a hundredth of a frame
+    f = max(1, int(diameter_px))
+    pad = int(math.ceil(10 * diameter_px)) + 2 * f
+    x0 = max(0, (int(xi[test].min()) - pad) // f * f)
+    y0 = max(0, (int(yi[test].min()) - pad) // f * f)
+    x1 = min(w, int(xi[test].max()) + pad + 1)
+    y1 = min(h, int(yi[test].max()) + pad + 1)
+    key = (x0, y0, x1, y1)
+    if key not in objects:
+        objects[key] = _DarkObjects.find(np.asarray(img)[y0:y1, x0:x1], diameter_px)
+    dk = objects[key]
+    if dk is None:
+        return
+    inside = np.zeros(len(cxy), bool)
+    # the object itself, not grown: a bead coming out beside it is whole
+    inside[test] = dk.core_at(xi[test] - x0, yi[test] - y0)
     if inside.any():
         compat[np.ix_(lost, inside)] = False
 
