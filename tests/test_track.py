@@ -646,6 +646,17 @@ def _faint_bead_sequence(seed: int, n: int = 60, size: int = 128, quanta_per_px:
     return frames, M
 
 
+def _track_faint(frames, M, **settings):
+    """The faint bead tracked from its first position with these tracker settings: the table,
+    each frame's centre error and which frames were found (none of them off the bead)."""
+    s = track_view(frames, {"M": M[0]}, 4.0, "dark", roi="none",
+                   settings=TrackSettings(**settings)).table.sort_values("frame")
+    e = np.hypot(s["x_px"] - M[:, 0], s["y_px"] - M[:, 1]).to_numpy()
+    ok = s["found"].to_numpy()
+    assert (e[ok] < 1.0).all()                     # nothing off the bead
+    return s, e, ok
+
+
 def test_second_look_finds_faint_marker_near_its_prediction():
     """A marker the window threshold misses in some frames is found there by the second look
     (a lower threshold within a pixel of its prediction, the marker's own amplitude and
@@ -656,12 +667,7 @@ def test_second_look_finds_faint_marker_near_its_prediction():
     for seed in range(3):
         frames, M = _faint_bead_sequence(seed)
         for k in found:
-            res = track_view(frames, {"M": M[0]}, 4.0, "dark", roi="none",
-                             settings=TrackSettings(second_look_k_sigma=k))
-            s = res.table.sort_values("frame")
-            e = np.hypot(s["x_px"] - M[:, 0], s["y_px"] - M[:, 1]).to_numpy()
-            ok = s["found"].to_numpy()
-            assert (e[ok] < 1.0).all()                     # nothing off the bead
+            s, e, ok = _track_faint(frames, M, second_look_k_sigma=k)
             found[k] += int(ok.sum())
             weak = (s["status"] == "weak").to_numpy()
             if k is None:
@@ -719,13 +725,7 @@ def test_second_look_takes_a_faint_marker_below_the_detector_snr():
     for seed in range(4):
         frames, M = _faint_bead_sequence(seed, quanta_per_px=80.0)
         for k in found:
-            res = track_view(frames, {"M": M[0]}, 4.0, "dark", roi="none",
-                             settings=TrackSettings(second_look_min_snr=k))
-            s = res.table.sort_values("frame")
-            e = np.hypot(s["x_px"] - M[:, 0], s["y_px"] - M[:, 1]).to_numpy()
-            ok = s["found"].to_numpy()
-            assert (e[ok] < 1.0).all()
-            found[k] += int(ok.sum())
+            found[k] += int(_track_faint(frames, M, second_look_min_snr=k)[2].sum())
     print(f"frames found of 240 at SNR 3-4: second look at min SNR 3 {found[3.0]}, at 2 {found[2.0]}")
     assert found[2.0] >= found[3.0] + 10
 
