@@ -730,36 +730,46 @@ def test_second_look_takes_a_faint_marker_below_the_detector_snr():
     assert found[2.0] >= found[3.0] + 10
 
 
-def _rod_sequence(n: int = 80, size: int = 160, seed: int = 3):
-    """A bead moving right at 1 px per frame passes behind an opaque rod (x 80-92, a quarter
-    of the background's brightness, blurred edges) from frame 40 to 56 and comes out on the
-    other side; inside the rod, 10 px ahead of where the bead vanished and on its path, a
-    bead-sized dip of the bead's own depth (rod texture, a hole)."""
+def _rod_sequence(n: int = 80, size: int = 160, seed: int = 3, levels=(140.0, 35.0, 40.0, 30.0, 2.0),
+                  dtype=np.uint8):
+    """A bead moving right at 1 px per frame passes behind an opaque rod (x 80-92, blurred
+    edges) from frame 40 to 56 and comes out on the other side; inside the rod, 10 px ahead
+    of where the bead vanished and on its path, a bead-sized dip (rod texture, a hole).
+    ``levels``: background, rod, the bead's depth, the dip's depth, noise sd (default a raw
+    8-bit frame: the rod a quarter of the background's brightness, the dip 3/4 of the bead's
+    depth)."""
+    bg, rod_level, amp, dip, sd = levels
     rng = np.random.default_rng(seed)
     yy, xx = np.mgrid[:size, :size].astype(float)
     rod = (xx >= 80) & (xx <= 92) & (yy <= 110)
-    base = np.where(rod, 35.0, 140.0)
+    base = np.where(rod, rod_level, bg)
     base = cv2.GaussianBlur(base, (0, 0), 1.0)
-    spot = 30.0 * np.exp(-((xx - 88.0) ** 2 + (yy - 90.4) ** 2) / (2 * 1.4 ** 2))
+    spot = dip * np.exp(-((xx - 88.0) ** 2 + (yy - 90.4) ** 2) / (2 * 1.4 ** 2))
     t = np.arange(n, dtype=float)
     M = np.column_stack([38 + 1.0 * t, 90 + 0.0 * t])
     hidden = (M[:, 0] > 77) & (M[:, 0] < 95)
     frames = []
+    top = np.iinfo(dtype).max
     for i in range(n):
         img = base - spot
         if not hidden[i]:
-            img = img - 40.0 * np.exp(-((xx - M[i, 0]) ** 2 + (yy - M[i, 1]) ** 2) / (2 * 1.4 ** 2))
-        frames.append(np.clip(np.rint(img + rng.normal(0, 2.0, img.shape)), 0, 255).astype(np.uint8))
+            img = img - amp * np.exp(-((xx - M[i, 0]) ** 2 + (yy - M[i, 1]) ** 2) / (2 * 1.4 ** 2))
+        frames.append(np.clip(np.rint(img + rng.normal(0, sd, img.shape)), 0, top).astype(dtype))
     return frames, M, hidden
 
 
-def test_lost_marker_is_not_found_again_inside_a_dark_object():
+@pytest.mark.parametrize("kw", [{}, {"levels": (40000.0, 30000.0, 1500.0, 1500.0, 150.0), "dtype": np.uint16}],
+                         ids=["raw", "log"])
+def test_lost_marker_is_not_found_again_inside_a_dark_object(kw):
     """A marker lost behind an instrument is not found again on a bead-like dip inside the
     instrument's shadow while its gate grows along its predicted path (the dip lies on that
     path): no position of it inside the rod, and it is found again on the bead after it comes
-    out.  Without the rule (the dark-object test patched out) the dip is taken for it."""
+    out.  Without the rule (the dark-object test patched out) the dip is taken for it.  Raw
+    8-bit frames (the rod a quarter of the background), and 16-bit log-converted ones, where
+    the rod is 3/4 of the background's level (not darker than half) but 6.7 times deeper than
+    the bead."""
     import bsipipe.imaging.track as T
-    frames, M, hidden = _rod_sequence()
+    frames, M, hidden = _rod_sequence(**kw)
 
     def run():
         s = track_view(frames, {"M": M[0]}, 4.0, "dark", roi="none").table.sort_values("frame")

@@ -1224,9 +1224,13 @@ class _DarkObjects:
         self.dy, self.dx = _disk_offsets(kk)
 
     @classmethod
-    def find(cls, img: np.ndarray, diameter_px: float, grow_px: int = 2) -> "_DarkObjects | None":
+    def find(cls, img: np.ndarray, diameter_px: float, grow_px: int = 2,
+             depth: float | None = None) -> "_DarkObjects | None":
         """The objects of a frame (None when there are none).  The reduced copy is made in the
-        frame's own dtype (8/16-bit: area means rounded to whole grey levels)."""
+        frame's own dtype (8/16-bit: area means rounded to whole grey levels).  ``depth``:
+        dark where more than this below the surroundings (grey levels) or below half of them,
+        instead of the latter alone (a log-converted frame's instrument is not darker than
+        half its surroundings, but far deeper than a bead)."""
         a = np.asarray(img)
         if a.dtype not in (np.uint8, np.uint16, np.float32):
             a = a.astype(np.float32)
@@ -1239,6 +1243,8 @@ class _DarkObjects:
             dark = (small < 0.5 * bg) & (bg > 0)
         else:                                        # integers: 2 small < bg, exactly (so bg > 0)
             dark = 2 * small.astype(np.int16 if small.dtype == np.uint8 else np.int32) < bg
+        if depth is not None:
+            dark |= (bg.astype(np.float32) - small.astype(np.float32)) > depth
         dark = dark.view(np.uint8)
         # the components within the dark pixels' bounding box (labels and areas as in the whole)
         x0, y0, bw, bh = cv2.boundingRect(dark)

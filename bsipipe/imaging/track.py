@@ -497,9 +497,13 @@ def _not_in_objects(img, diameter_px: float, live: list[_Marker], cxy: np.ndarra
     y0 = max(0, (int(yi[test].min()) - pad) // f * f)
     x1 = min(w, int(xi[test].max()) + pad + 1)
     y1 = min(h, int(yi[test].max()) + pad + 1)
-    key = (x0, y0, x1, y1)
+    # an object is also far deeper than the lost markers (5 times their amplitude), whatever
+    # its ratio to its surroundings (log-converted frames)
+    amps = [m.amp_median for m, lo in zip(live, lost) if lo and math.isfinite(m.amp_median)]
+    depth = 5.0 * max(amps) if amps else None
+    key = (x0, y0, x1, y1, depth)
     if key not in objects:
-        objects[key] = _DarkObjects.find(np.asarray(img)[y0:y1, x0:x1], diameter_px)
+        objects[key] = _DarkObjects.find(np.asarray(img)[y0:y1, x0:x1], diameter_px, depth=depth)
     dk = objects[key]
     if dk is None:
         return
