@@ -242,13 +242,14 @@ def _check_seeds_inside(df: pd.DataFrame, frame_shapes: dict | None, path, lines
                              path=path, line=None if lines is None else int(lines[k]))
 
 
-def _first_frame_shapes(views: dict, channel) -> dict:
-    """Each view's frame shape from its first frame (None when it has no frame: reported later)."""
+def _first_frames(views: dict, channel) -> dict:
+    """Each view's first frame, decoded once for the seeds' check, the polarity and the
+    diameter (None when it has no frame: reported later)."""
     from ..io.images import iter_frames
     out = {}
     for v, p in views.items():
         fr = next(iter(iter_frames(p, channel=channel)), None)
-        out[v] = None if fr is None else fr.image.shape
+        out[v] = None if fr is None else fr.image
     return out
 
 
@@ -328,22 +329,21 @@ def prefetched(frames, depth: int = 2):
         t.join(timeout=5.0)
 
 
-def _polarity_from_seeds(views: dict[str, str], seeds: pd.DataFrame, diameter_px: float | None,
-                         channel) -> tuple[str, str, dict]:
+def _polarity_from_seeds(firsts: dict, seeds: pd.DataFrame, diameter_px: float | None) -> tuple[str, str, dict]:
     """Dark or bright markers, from the seeds: each seeded view's first frame is searched
     around every seed (:func:`~bsipipe.imaging.detect.refine_at`, 6 px) for a dark and for a
     bright marker; the polarity that finds more of them wins, dark on a tie (raw X-ray frames
     show beads dark; an inverted export or a processed radiograph shows them bright).
-    Returns the polarity, a note for track.json and the counts per polarity."""
+    ``firsts``: each view's first frame (:func:`_first_frames`).  Returns the polarity, a
+    note for track.json and the counts per polarity."""
     from ..imaging.detect import refine_at
-    from ..io.images import iter_frames
-    firsts = [(next(iter(iter_frames(views[v], channel=channel))).image, g[["x_px", "y_px"]].to_numpy())
-              for v, g in seeds.groupby("view", sort=False)]
-    total = sum(len(xy) for _, xy in firsts)
+    seeded = [(firsts[v], g[["x_px", "y_px"]].to_numpy()) for v, g in seeds.groupby("view", sort=False)
+              if firsts.get(v) is not None]
+    total = sum(len(xy) for _, xy in seeded)
     # beads larger than 4 px may need a larger diameter to be found at all
     for d in ([diameter_px] if diameter_px else [4.0, 8.0, 16.0]):
         n = {p: sum(int(refine_at(img, xy, d, p, search_radius_px=max(6.0, 0.5 * d))["found"].sum())
-                    for img, xy in firsts) for p in ("dark", "bright")}
+                    for img, xy in seeded) for p in ("dark", "bright")}
         if n["dark"] or n["bright"]:
             break
     pol = "bright" if n["bright"] > n["dark"] else "dark"
@@ -351,17 +351,17 @@ def _polarity_from_seeds(views: dict[str, str], seeds: pd.DataFrame, diameter_px
                  f"bright in the first frame"), n
 
 
-def _polarity_from_frames(views: dict[str, str], diameter_px: float | None, channel) -> tuple[str, str, dict]:
+def _polarity_from_frames(firsts: dict, diameter_px: float | None) -> tuple[str, str, dict]:
     """Dark or bright markers without seeds: every view's first frame is searched whole
     (:func:`~bsipipe.imaging.detect.detect_arrays`) for dark and for bright markers, and
     those of SNR 6 or more are counted.  Steel beads in a raw frame give a dozen such dark
     spots and hardly any bright ones; bright is taken only where it finds at least 3 and
-    twice as many as dark."""
+    twice as many as dark.  ``firsts``: each view's first frame (:func:`_first_frames`)."""
     from ..imaging.detect import detect_arrays
-    from ..io.images import iter_frames
     n = {"dark": 0, "bright": 0}
-    for path in views.values():
-        img = next(iter(iter_frames(path, channel=channel))).image
+    for img in firsts.values():
+        if img is None:
+            continue
         for p in n:
             n[p] += int((detect_arrays(img, diameter_px or 4.0, p)["snr"] >= 6.0).sum())
     pol = "bright" if n["bright"] >= 3 and n["bright"] >= 2 * n["dark"] else "dark"
@@ -369,7 +369,7 @@ def _polarity_from_frames(views: dict[str, str], diameter_px: float | None, chan
                  f"frames"), n
 
 
-def _estimate_diameter(path, seeds: pd.DataFrame, polarity: str, channel) -> tuple[float, str]:
+def _estimate_diameter(first: np.ndarray, seeds: pd.DataFrame, polarity: str) -> tuple[float, str]:
     """Marker diameter from the seeds of one view, and a note: 2.5 times the median fitted
     Gaussian sigma of the seeded markers in the first frame (a bead of diameter d blurred by
     sigma_b gives sigma ~ sqrt((d/4)^2 + sigma_b^2)), clipped to 2..40 px.
@@ -380,14 +380,12 @@ def _estimate_diameter(path, seeds: pd.DataFrame, polarity: str, channel) -> tup
     of those found (2.5 x their median sigma) finds more seeds, among them every seed found
     before, it is taken.  (A bead fitted with a diameter over about twice its own is
     measured less well: beads of more than two sizes apart need --diameter-px or separate
-    runs.)"""
+    runs.)  ``first``: the view's first frame."""
     from ..imaging.detect import refine_at
-    from ..io.images import iter_frames
-    fr = next(iter(iter_frames(path, channel=channel)))
     xy = seeds[["x_px", "y_px"]].to_numpy()
 
     def found_at(d, pts):
-        r = refine_at(fr.image, pts, d, polarity, search_radius_px=max(6.0, 0.5 * d))
+        r = refine_at(first, pts, d, polarity, search_radius_px=max(6.0, 0.5 * d))
         return r["found"].to_numpy(bool) & np.isfinite(r["sigma_px"].to_numpy()), r["sigma_px"].to_numpy()
 
     ok, s = found_at(4.0, xy)
@@ -618,7 +616,10 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     for v, p in cfg.views.items():
         if not (os.path.exists(p) or any(c in p for c in "*?[")):
             raise InputError(f"view {v}: no such file or folder", path=p)
-    seed_df = read_seeds(cfg.seeds, views, _first_frame_shapes(cfg.views, cfg.channel)) if cfg.seeds else None
+    # each view's first frame, for the seeds' check, the polarity and the diameter (then let go)
+    firsts = _first_frames(cfg.views, cfg.channel) if cfg.seeds or cfg.polarity == "auto" else {}
+    shapes = {v: None if im is None else im.shape for v, im in firsts.items()}
+    seed_df = read_seeds(cfg.seeds, views, shapes) if cfg.seeds else None
     rig = None
     if cfg.calibration:
         rig, pair = _read_calibration(cfg.calibration, views)
@@ -626,23 +627,23 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     polarity_counts = None
     if cfg.polarity == "auto":
         if seed_df is not None:
-            pol, polarity_note, polarity_counts = _polarity_from_seeds(cfg.views, seed_df, cfg.diameter_px,
-                                                                       cfg.channel)
+            pol, polarity_note, polarity_counts = _polarity_from_seeds(firsts, seed_df, cfg.diameter_px)
         else:
-            pol, polarity_note, polarity_counts = _polarity_from_frames(cfg.views, cfg.diameter_px, cfg.channel)
+            pol, polarity_note, polarity_counts = _polarity_from_frames(firsts, cfg.diameter_px)
         cfg = cfg.model_copy(update={"polarity": pol})
         log.info("track: markers %s (%s)", pol, polarity_note)
     d = cfg.diameter_px
     diameter_note = "given"
     if d is None:
-        if seed_df is not None:
-            v0 = seed_df["view"].iloc[0]
-            d, how = _estimate_diameter(cfg.views[v0], seed_df[seed_df["view"] == v0], cfg.polarity, cfg.channel)
+        v0 = seed_df["view"].iloc[0] if seed_df is not None else None
+        if v0 is not None and firsts.get(v0) is not None:
+            d, how = _estimate_diameter(firsts[v0], seed_df[seed_df["view"] == v0], cfg.polarity)
             diameter_note = f"{v0}: {how}"
         else:
             d = 4.0
             diameter_note = "default (no --diameter-px, no seeds)"
         log.info("track: marker diameter %.2f px (%s)", d, diameter_note)
+    del firsts
     det = DetectionSettings(k_sigma=cfg.detection.k_sigma, window_k_sigma=cfg.detection.window_k_sigma,
                             min_snr=cfg.detection.min_snr, method=cfg.detection.method,
                             max_elongation=cfg.detection.max_elongation, blur_px=cfg.detection.blur_px,
