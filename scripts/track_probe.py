@@ -13,7 +13,10 @@ clipped at 255 becomes a flat grey without noise, which no detector would see in
 frame: automatic mode's whole-frame noise statistics are misled by it), ``noise2`` (extra pixel noise, sd 4),
 ``bits16`` (10-bit data in 16-bit files), ``blur`` (a further Gaussian blur of 1.2 px),
 ``dup`` (cam2 repeats every 7th frame and drops the next), ``log`` (log-converted 16-bit
-frames).  The twin is the track benchmark's
+frames), ``grid`` (anti-scatter grid stripes, period 3.3 px, +-3 grey levels), ``glare``
+(veiling glare: 30 % of the light spread over ~50 px), ``abc`` (automatic brightness control:
+gain -30 % and offset +20 over the middle third), ``jpeg`` (JPEG files, OpenCV's default
+quality 95), ``mp4`` (an MPEG-4 part 2 video per view, lossy), ``mjpg`` (a Motion-JPEG AVI per view).  The twin is the track benchmark's
 (``results/bench_cache/twin200``: 200 frames per view at 4 frames/s, its seeds and true
 cameras); the perturbed frames go to ``/tmp/bsipipe_probe/EFFECT`` and are tracked by the
 current code with ``bsipipe track`` (``--old``: the output goes to ``track_old``, for a
@@ -132,7 +135,35 @@ def logimg(v, imgs):
     # the log of the intensity (line integrals of attenuation, as a log-converted radiograph), 16-bit
     return [np.rint(np.log(im.astype(np.float64) + 1) / np.log(256) * 65535).astype(np.uint16) for im in imgs]
 
-EFFECTS = {"log": logimg, "invert": invert, "vignette": vignette, "noise2": noise2, "bits16": bits16, "blur": blur, "dup": dup,
+def grid(v, imgs):
+    # an anti-scatter grid's lines: horizontal stripes of period 3.3 px, +-3 grey levels
+    yy = np.arange(1024, dtype=np.float32)[:, None]
+    g = 3.0 * np.sin(2 * np.pi * yy / 3.3)
+    return [np.clip(np.rint(im + g), 0, 255).astype(np.uint8) for im in imgs]
+
+def glare(v, imgs):
+    # veiling glare of the intensifier: 30 % of the light spread over ~50 px (contrast down)
+    return [np.clip(np.rint(0.7 * im + 0.3 * cv2.GaussianBlur(im.astype(np.float32), (0, 0), 50)), 0, 255)
+            .astype(np.uint8) for im in imgs]
+
+def abc(v, imgs):
+    # automatic brightness control: gain falls 30 % and the offset rises 20 grey levels over the
+    # middle of the sequence (the instrument enters the field), smoothly
+    n = len(imgs)
+    out = []
+    for k, im in enumerate(imgs):
+        a = 0.5 - 0.5 * np.cos(np.pi * min(max((k - n / 3) / (n / 3), 0), 1))
+        out.append(np.clip(np.rint(im * (1 - 0.3 * a) + 20 * a), 0, 255).astype(np.uint8))
+    return out
+
+def same(v, imgs):
+    return imgs
+
+#: effects written in another file format than PNG: the extension (a folder of JPEG files) or a
+#: video container (one file per view)
+FORMATS = {"jpeg": ".jpg", "mp4": ".mp4", "mjpg": ".avi"}
+
+EFFECTS = {"grid": grid, "glare": glare, "abc": abc, "jpeg": same, "mp4": same, "mjpg": same, "log": logimg, "invert": invert, "vignette": vignette, "noise2": noise2, "bits16": bits16, "blur": blur, "dup": dup,
            "dust2": dust2, "late": late, "none": lambda v, i: i, "dust": dust, "lag05": lag(0.5), "flicker": flicker, "interlace": interlace,
            "saltpepper": saltpepper}
 
@@ -167,13 +198,24 @@ if not (work / "synth" / "truth_markers.csv").exists():
     for v in ("cam1", "cam2"):
         imgs = [cv2.imread(str(p), cv2.IMREAD_UNCHANGED) for p in frames(v)]
         imgs = EFFECTS[name](v, imgs)
-        d = work / "sequence" / v; d.mkdir(parents=True)
-        for k, im in enumerate(imgs): cv2.imwrite(str(d / f"frame_{k:04d}.png"), im)
+        ext = FORMATS.get(name, ".png")
+        if ext in (".mp4", ".avi"):
+            (work / "sequence").mkdir(parents=True, exist_ok=True)
+            wr = cv2.VideoWriter(str(work / "sequence" / f"{v}{ext}"),
+                                 cv2.VideoWriter_fourcc(*("mp4v" if ext == ".mp4" else "MJPG")), 4.0,
+                                 imgs[0].shape[::-1], False)
+            for im in imgs: wr.write(im)
+            wr.release()
+        else:
+            d = work / "sequence" / v; d.mkdir(parents=True)
+            for k, im in enumerate(imgs): cv2.imwrite(str(d / f"frame_{k:04d}{ext}"), im)
     (work / "synth").mkdir()
     for f in ("truth_markers.csv", "truth.json"): shutil.copy(SRC / f, work / "synth" / f)
 out = work / ("track" + ("_auto" if "--no-seeds" in extra else "") + ("_old" if "--old" in extra else ""))
 shutil.rmtree(out, ignore_errors=True)
-cmd = [sys.executable, "-m", "bsipipe.cli", "-q", "track", "--view", f"cam1={work}/sequence/cam1", "--view", f"cam2={work}/sequence/cam2",
+src = {v: work / "sequence" / (v + (FORMATS.get(name, "") if FORMATS.get(name) in (".mp4", ".avi") else ""))
+       for v in ("cam1", "cam2")}
+cmd = [sys.executable, "-m", "bsipipe.cli", "-q", "track", "--view", f"cam1={src['cam1']}", "--view", f"cam2={src['cam2']}",
        "--calibration", str(SRC / "calibration.json"), "--fps", "4", "-o", str(out)]
 if "--no-seeds" not in extra: cmd += ["--seeds", str(SRC / "seeds.csv")]
 r = subprocess.run(cmd, capture_output=True, text=True)

@@ -377,8 +377,8 @@ def _estimate_diameter(first: np.ndarray, seeds: pd.DataFrame, polarity: str) ->
     Markers of two sizes (the deep 0.5 mm beads and the 1 mm references) are found at one
     diameter near the larger size, not near the smaller: where seeds find no marker at the
     median's diameter, they are looked for at 1.5, 2, 3 and 4 times it, and if the diameter
-    of those found (2.5 x their median sigma) finds more seeds, among them every seed found
-    before, it is taken.  (A bead fitted with a diameter over about twice its own is
+    of those found (2.5 x their median sigma) finds at least half the seeds missed, and every
+    seed found before, it is taken.  (A bead fitted with a diameter over about twice its own is
     measured less well: beads of more than two sizes apart need --diameter-px or separate
     runs.)  ``first``: the view's first frame."""
     from ..imaging.detect import refine_at
@@ -407,7 +407,11 @@ def _estimate_diameter(first: np.ndarray, seeds: pd.DataFrame, polarity: str) ->
     if sig:
         d2 = float(np.clip(2.5 * np.median(sig), 2.0, 40.0))
         hit2, _ = found_at(d2, xy)
-        if hit2.sum() > hit.sum() and hit2[hit].all():
+        # a second size of marker, not one stray find: at least half the seeds missed at d
+        # found (a lossy video's faint beads, lost at every size, must not make one blur or
+        # block artefact found at 2-4 d set the diameter of every marker)
+        gain = int(hit2.sum() - hit.sum())
+        if gain > 0 and 2 * gain >= int((~hit).sum()) and hit2[hit].all():
             return d2, (f"{note}: {d:.2f} px found {hit.sum()} of {len(xy)} seeded markers; {d2:.2f} px, from the "
                         f"{len(sig)} larger ones, finds {hit2.sum()}")
     return d, note
