@@ -866,3 +866,34 @@ def test_cli_track_one_stray_find_does_not_set_the_diameter(tmp_path):
     e = np.hypot(s["x_px"] - [t[m][0] for m in s["marker"]], s["y_px"] - [t[m][1] for m in s["marker"]])
     print(f"centre error max {e.max():.3f} px")
     assert e.max() < 0.3
+
+
+def test_a_bead_another_marker_just_held_is_not_free_for_a_long_lost_one():
+    """A is tracked on its bead; B (a wider bead 12 px away) vanishes after frame 9, and its
+    gate grows over A's bead.  For three frames noise widens A's bead beyond A's own width
+    test (as anti-scatter grid stripes did on the bench twin), though not beyond B's.  Without
+    the rule B takes A's bead in those frames and then keeps it, 12 px from where B was; with
+    it the bead stays A's (A lost for those frames only) and B is never found again."""
+    rng = np.random.default_rng(5)
+    size = 128
+    yy, xx = np.mgrid[:size, :size].astype(float)
+
+    def spot(x, y, sigma, depth=30.0):
+        return depth * np.exp(-((xx - x) ** 2 + (yy - y) ** 2) / (2 * sigma ** 2))
+
+    A, B = (50.3, 60.2), (62.4, 60.5)
+    frames = []
+    for k in range(50):
+        img = 120.0 - spot(*A, 1.75 if 30 <= k <= 32 else 1.0)
+        if k < 10:
+            img -= spot(*B, 1.3)
+        frames.append(np.clip(np.rint(img + rng.normal(0, 1.5, img.shape)), 0, 255).astype(np.uint8))
+    r = track_view(frames, {"A": A, "B": B}, 4.0)
+    t = r.table.set_index(["marker", "frame"])
+    b_late = t.loc["B"].loc[10:]
+    a = t.loc["A"]
+    print(f"B found after it vanished: {int(b_late['found'].sum())} frames; A found {int(a['found'].sum())} of 50")
+    assert not b_late["found"].any()
+    assert a["found"].drop(index=[30, 31, 32]).all()
+    e = np.hypot(a["x_px"] - A[0], a["y_px"] - A[1])[a["found"].to_numpy(bool)]
+    assert e.max() < 0.5

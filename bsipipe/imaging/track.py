@@ -395,6 +395,13 @@ def _search_frame(img, f: int, live: list[_Marker], pred, gates, diameter_px: fl
         if taken is not None:
             # candidates other markers already hold in this frame (within a diameter) are not free
             compat &= _apart(cxy, taken, max(1.0, diameter_px))[None, :]
+        # a candidate within a diameter of the prediction of a marker measured in the last
+        # few frames (its prediction still holds) is that marker, even one its own appearance
+        # test turns down in this frame, noise having widened it: it is not free for the
+        # grown gate of a marker lost for longer
+        recent = np.array([abs(f - m.frame) <= settings.max_extrapolation_frames + 1 for m in live], bool)
+        if recent.any() and not recent.all() and len(cxy):
+            compat[~recent] &= _apart(cxy, pred[recent], max(1.0, diameter_px))[None, :]
         if polarity == "dark" and len(cxy):
             _not_in_objects(img, diameter_px, live, cxy, compat, objects)
         return c, cxy, *_assign(live, pred, gates, cxy, compat, miss_cost=1.0)
