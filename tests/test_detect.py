@@ -727,3 +727,38 @@ def test_a_blob_far_wider_than_the_marker_is_not_taken_for_one():
     loose = D.detect_arrays(img, 4.0, "dark", "none", D.DetectionSettings(max_sigma_factor=None))
     wide = np.hypot(loose["x_px"] - 110.0, loose["y_px"] - 78.0) < 1.5
     assert wide.sum() == 1 and loose["sigma_px"][wide][0] > 3.0
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_a_constant_fill_region_is_left_out_of_the_noise_statistics(dtype):
+    """Two thirds of the frame a constant grey that is neither black nor saturated (a blanked
+    region, a saturated one mapped to a grey by post-processing, as an automatic brightness
+    control applied to recorded frames does), the rest noisy with eight beads.  The fill has
+    no noise to measure: counted as background it sets the threshold near zero and the noise
+    of the rest and its structure pass for markers (20 detections); left out, the eight beads
+    are found, nothing else, as in the noisy part alone."""
+    rng = np.random.default_rng(4)
+    h, w = 240, 360
+    beads = np.array([[260.3, 40.2], [300.7, 80.5], [250.1, 120.9], [330.4, 150.2], [280.8, 190.6],
+                      [320.2, 215.3], [262.6, 170.1], [305.5, 30.7]])
+    yy, xx = np.mgrid[:h, :w].astype(float)
+    scale = 1 if dtype == np.uint8 else 64
+    # background: smooth structure (sd 8 grey levels over ~8 px, as anatomy) and pixel noise
+    s = cv2.GaussianBlur(rng.normal(0, 1, (h, w)), (0, 0), 8.0)
+    img = 150.0 + 8.0 * s / s.std()
+    for x, y in beads:
+        img -= 25 * np.exp(-((xx - x) ** 2 + (yy - y) ** 2) / (2 * 1.2 ** 2))
+    img = (img + rng.normal(0, 2.0, img.shape)) * scale
+    img[:, :240] = 60 * scale
+    img = np.clip(np.rint(img), 0, np.iinfo(dtype).max).astype(dtype)
+    found = detect_markers(img, 4.0, "dark", roi="none")
+    xy = found[["x_px", "y_px"]].to_numpy()
+    d = cKDTree(beads).query(xy)[0] if len(xy) else np.zeros(0)
+    near = cKDTree(xy).query(beads)[0]
+    # the noisy part alone (no fill): what the detector finds there, fill or not
+    alone = detect_markers(img[:, 240:], 4.0, "dark", roi="none")
+    print(f"{np.dtype(dtype).name}: {len(found)} detections ({len(alone)} in the noisy part alone), "
+          f"{int((near < 0.5).sum())} of 8 beads within 0.5 px")
+    assert (near < 0.5).all()
+    assert len(found) == len(alone) == 8
+    np.testing.assert_allclose(np.sort(alone["x_px"].to_numpy() + 240), np.sort(found["x_px"].to_numpy()), atol=1e-3)
