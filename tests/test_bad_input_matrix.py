@@ -752,3 +752,39 @@ def test_config_literal_with_true_false_takes_them(value):
     from bsipipe.config import validate
     from bsipipe.study_config import FeSolveSection
     assert validate(FeSolveSection, {"enabled": value}, "s.yaml").enabled == value
+
+
+def test_views_at_different_frame_rates_are_a_warning(tmp_path):
+    """Two lossless videos whose time stamps give 4 and 2 frames/s: frame k of one is not
+    taken at frame k's time in the other.  Not an error (the loop's view-time-offset can pair
+    them by time), but never silent: a frame-rate-mismatch warning with both rates; videos at
+    the same rate raise none."""
+    import cv2
+    rng = np.random.default_rng(6)
+    yy, xx = np.mgrid[:96, :96].astype(float)
+    beads = {"A": (30.3, 40.6), "B": (60.2, 55.1)}
+    seeds = tmp_path / "seeds.csv"
+    pd.DataFrame([{"view": v, "marker": m, "x_px": x + 0.4, "y_px": y - 0.3} for v in ("cam1", "cam2")
+                  for m, (x, y) in beads.items()]).to_csv(seeds, index=False)
+    outs = {}
+    for rates in ((4.0, 2.0), (4.0, 4.0)):
+        for v, fps in zip(("cam1", "cam2"), rates):
+            w = cv2.VideoWriter(str(tmp_path / f"{v}_{fps:g}.avi"), cv2.VideoWriter_fourcc(*"FFV1"), fps, (96, 96), False)
+            assert w.isOpened()
+            for k in range(8):
+                img = np.full((96, 96), 150.0)
+                for x, y in beads.values():
+                    img -= 40 * np.exp(-((xx - x - 0.2 * k) ** 2 + (yy - y) ** 2) / (2 * 1.1 ** 2))
+                w.write(np.clip(np.rint(img + rng.normal(0, 1.5, img.shape)), 0, 255).astype(np.uint8))
+            w.release()
+        out = tmp_path / f"out_{rates[1]:g}"
+        r = CliRunner().invoke(cli, ["track", "--view", f"cam1={tmp_path / 'cam1_4.avi'}",
+                                     "--view", f"cam2={tmp_path / f'cam2_{rates[1]:g}.avi'}",
+                                     "--seeds", str(seeds), "-o", str(out)])
+        assert r.exit_code == 0, r.output
+        outs[rates] = [x for x in json.loads((out / "track.json").read_text())["warnings"]
+                       if x["code"] == "frame-rate-mismatch"]
+    w = outs[(4.0, 2.0)]
+    assert len(w) == 1 and w[0]["frames_per_s"] == pytest.approx({"cam1": 4.0, "cam2": 2.0})
+    assert "cam1 4, cam2 2 frames/s" in w[0]["message"]
+    assert outs[(4.0, 4.0)] == []

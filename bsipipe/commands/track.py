@@ -728,6 +728,26 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
                                 + ", ".join(f"{v} {n}" for v, n in counts.items())
                                 + "); frames are paired by index and time, the longer views' last frames "
                                   "have no partner", log, n_frames=counts))
+    rates = {}
+    for v, g in table.groupby("view", sort=False):
+        t = g.drop_duplicates("frame").sort_values("frame")
+        dt = np.diff(t["time_s"].to_numpy(float)) / np.diff(t["frame"].to_numpy(float))
+        dt = dt[np.isfinite(dt) & (dt > 0)]
+        if len(dt):
+            rates[v] = 1.0 / float(np.median(dt))
+    if len(rates) > 1 and max(rates.values()) > 1.01 * min(rates.values()):
+        # time stamps from the sources (video, DICOM) at different rates: frame k of one view
+        # is not taken at frame k's time in the other.  Stereo pairs frames by index; the
+        # loop's view-time-offset interpolates one view's tracks to the other's times (offset
+        # 0 if the clocks agree), over the frames both views hold
+        from ..quality import warning
+        warnings.append(warning(
+            "frame-rate-mismatch",
+            "track: the views' time stamps give different frame rates ("
+            + ", ".join(f"{v} {r:.3g}" for v, r in rates.items())
+            + " frames/s): frames are paired by index, and only where the loop takes view-time-offset are "
+              "one view's tracks interpolated to the other's times; 3-D points exist for the frame numbers "
+              "both views hold, not for the whole of the longer recording", log, frames_per_s=rates))
     from ..io.images import lossy_compression
     lossy = {v: c for v in views if (c := lossy_compression(cfg.views[v])) is not None}
     if lossy:
