@@ -806,6 +806,17 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
             raise InputError(f"no marker is tracked in both {pair[0]} and {pair[1]} (the seeds must use the same "
                              "marker names in both views)", path=cfg.seeds)
         loop_dict, fit, _ = close_stereo_loop(data, loop=cfg.loop, max_offset_s=cfg.max_offset_s)
+        from ..imaging.track_effects import orientation_check
+        turned = orientation_check(data, {v: info[v]["frame_shape_px"] for v in pair})
+        if turned is not None:
+            from ..quality import warning
+            warnings.append(warning(
+                "view-orientation",
+                f"track: {turned['view']}'s frames look {turned['orientation']} against the calibration: "
+                f"the rays' median gap is {turned['median_gap_mm']:.3g} mm with its positions so turned, "
+                f"{turned['median_gap_as_is_mm']:.3g} mm as the frames are ({turned['n_points']} two-view points); "
+                "the 3-D points are triangulated as the frames are: export the frames as the calibration images "
+                "were, or calibrate from frames oriented as these", log, **turned))
         loop_dict["time_unit"] = time_unit
         points3d = fit.points.copy()
         if time_unit == "frame":

@@ -1650,3 +1650,56 @@ def match_tracks_across_views(table: pd.DataFrame, views: tuple[ViewGeometry, Vi
         if j < len(na) and cost[i, j] < tau:
             out[nb[i]] = na[j]
     return out
+
+
+#: The eight orientations of a picture (the square's symmetries), as (name, map) with the map
+#: taking pixel coordinates (n, 2) of a w x h frame to those of the frame so turned; turns by
+#: a quarter only for square frames.
+def _orientations(w: int, h: int) -> list[tuple[str, callable]]:
+    X, Y = w - 1.0, h - 1.0
+    out = [("mirrored left-right", lambda p: np.column_stack([X - p[:, 0], p[:, 1]])),
+           ("mirrored top-bottom", lambda p: np.column_stack([p[:, 0], Y - p[:, 1]])),
+           ("turned 180 degrees", lambda p: np.column_stack([X - p[:, 0], Y - p[:, 1]]))]
+    if w == h:
+        out += [("turned 90 degrees clockwise", lambda p: np.column_stack([Y - p[:, 1], p[:, 0]])),
+                ("turned 90 degrees anticlockwise", lambda p: np.column_stack([p[:, 1], X - p[:, 0]])),
+                ("transposed", lambda p: np.column_stack([p[:, 1], p[:, 0]])),
+                ("transposed the other way", lambda p: np.column_stack([Y - p[:, 1], X - p[:, 0]]))]
+    return out
+
+
+_INVERSE = {"turned 90 degrees clockwise": "turned 90 degrees anticlockwise",
+            "turned 90 degrees anticlockwise": "turned 90 degrees clockwise"}
+
+
+def orientation_check(d: StereoData, shapes: dict, *, factor: float = 4.0, min_markers: int = 4) -> dict | None:
+    """Whether one view's frames look turned or mirrored against the calibration (an export
+    that flips the picture, the calibration taken from frames oriented otherwise): the
+    two-view points' median |ray gap| as the frames are, and with each view's positions
+    mirrored or turned (:func:`_orientations`) in turn.  Returns the orientation the frames
+    look to have (view, the name of the turn that, undone, fits best, median gaps) where it brings the median gap down ``factor`` times or more,
+    with at least ``min_markers`` markers seen in both views; else None.  ``shapes``: view
+    name -> (h, w) of its frames."""
+    from .triangulate import ray_gaps
+    both = np.isfinite(d.xa).all(axis=2) & np.isfinite(d.xb).all(axis=2)
+    if int(both.any(axis=0).sum()) < min_markers:
+        return None
+    ua, ub = d.xa[both], d.xb[both]
+    as_is = float(np.median(np.abs(ray_gaps(d.views, ua, ub))))
+    best = None
+    for k, (own, other) in enumerate(((ua, ub), (ub, ua))):
+        v = d.views[k]
+        shape = shapes.get(v.name)
+        if shape is None:
+            continue
+        h, w = int(shape[0]), int(shape[1])
+        for name, turn in _orientations(w, h):
+            t = turn(own)
+            g = ray_gaps(d.views, t, other) if k == 0 else ray_gaps(d.views, other, t)
+            m = float(np.median(np.abs(g)))
+            if best is None or m < best["median_gap_mm"]:
+                # the frames are turned the inverse way of the map that brings them back
+                best = {"view": v.name, "orientation": _INVERSE.get(name, name), "median_gap_mm": m}
+    if best is None or not best["median_gap_mm"] * factor <= as_is:
+        return None
+    return {**best, "median_gap_as_is_mm": as_is, "n_points": int(both.sum())}
