@@ -791,13 +791,28 @@ def test_lost_marker_is_not_found_again_inside_a_dark_object(kw):
     print(f"positions found inside the rod: {int(ok0[hidden].sum())} without the rule, {int(ok[hidden].sum())} with")
 
 
+def _track_clicked(tmp_path, images, names, xy):
+    """``bsipipe track`` on one view of these frames (8-bit PNG files) from seeds clicked
+    (0.8, -0.6) px off ``xy``, no diameter given; returns track.json and markers2d.csv."""
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i, img in enumerate(images):
+        cv2.imwrite(str(frames / f"f{i}.png"), np.clip(np.rint(img), 0, 255).astype(np.uint8))
+    seeds = tmp_path / "seeds.csv"
+    pd.DataFrame({"view": "cam1", "marker": names, "x_px": xy[:, 0] + 0.8, "y_px": xy[:, 1] - 0.6}).to_csv(
+        seeds, index=False)
+    out = tmp_path / "out"
+    r = CliRunner().invoke(cli, ["track", "--view", f"cam1={frames}", "--seeds", str(seeds), "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    return json.loads((out / "track.json").read_text()), pd.read_csv(out / "markers2d.csv")
+
+
 def test_cli_track_markers_of_two_sizes_without_a_diameter(tmp_path):
     """Seeds on beads of two sizes (four 5 px ones, three 10 px ones, as deep beads and
     larger reference markers at a higher magnification) and no --diameter-px: the diameter
     from the median of the seeds' fitted widths (the small beads') finds none of the large
     ones, so they are looked for at larger diameters and the diameter they give, which still
     finds the small ones, is taken: every marker found in every frame, within 0.3 px."""
-    import cv2
     rng = np.random.default_rng(2)
     size = 200
     small = np.array([[50.3, 60.7], [140.2, 55.1], [60.6, 140.4], [100.5, 100.2]])
@@ -805,22 +820,11 @@ def test_cli_track_markers_of_two_sizes_without_a_diameter(tmp_path):
     field = RayField(bead_camera(size))
     base_s = render_beads(small, 5.0, size, None, field=field, noise=False, quantize=False)
     base_l = render_beads(large, 10.0, size, None, field=field, noise=False, quantize=False)
-    frames = tmp_path / "frames"
-    frames.mkdir()
-    for i in range(3):
-        img = base_s + base_l - np.median(base_l) + rng.normal(0, 1.7, base_s.shape)
-        cv2.imwrite(str(frames / f"f{i}.png"), np.clip(np.rint(img), 0, 255).astype(np.uint8))
     truth = np.vstack([small, large])
     names = [f"S{k}" for k in range(len(small))] + [f"L{k}" for k in range(len(large))]
-    seeds = tmp_path / "seeds.csv"
-    pd.DataFrame({"view": "cam1", "marker": names, "x_px": truth[:, 0] + 0.8, "y_px": truth[:, 1] - 0.6}).to_csv(
-        seeds, index=False)
-    out = tmp_path / "out"
-    r = CliRunner().invoke(cli, ["track", "--view", f"cam1={frames}", "--seeds", str(seeds), "-o", str(out)])
-    assert r.exit_code == 0, r.output
-    j = json.loads((out / "track.json").read_text())
+    j, m2 = _track_clicked(tmp_path, [base_s + base_l - np.median(base_l) + rng.normal(0, 1.7, base_s.shape)
+                                      for _ in range(3)], names, truth)
     assert "from the 3 larger ones, finds 7" in j["diameter_source"], j["diameter_source"]
-    m2 = pd.read_csv(out / "markers2d.csv")
     assert m2["found"].all() and len(m2) == 21
     t = dict(zip(names, truth))
     e = np.hypot(m2["x_px"] - [t[m][0] for m in m2["marker"]], m2["y_px"] - [t[m][1] for m in m2["marker"]])
@@ -833,7 +837,6 @@ def test_cli_track_one_stray_find_does_not_set_the_diameter(tmp_path):
     them are erased and one is smeared into a 10 px blob.  The larger diameters find the blob
     only, one of the four seeds missed, so the diameter stays the beads' (taken from the blob,
     as before, it was ~9 px) and every bead is found within 0.3 px in the later frames."""
-    import cv2
     rng = np.random.default_rng(3)
     size = 200
     beads = np.array([[50.3, 60.7], [140.2, 55.1], [60.6, 140.4], [100.5, 100.2],
@@ -843,23 +846,12 @@ def test_cli_track_one_stray_find_does_not_set_the_diameter(tmp_path):
     blob = render_beads(beads[4:5], 10.0, size, None, field=field, noise=False, quantize=False)
     first = first + blob - np.median(blob)
     later = render_beads(beads, 5.0, size, None, field=field, noise=False, quantize=False)
-    frames = tmp_path / "frames"
-    frames.mkdir()
-    for i in range(5):
-        img = (first if i == 0 else later) + rng.normal(0, 1.7, later.shape)
-        cv2.imwrite(str(frames / f"f{i}.png"), np.clip(np.rint(img), 0, 255).astype(np.uint8))
     names = [f"S{k}" for k in range(len(beads))]
-    seeds = tmp_path / "seeds.csv"
-    pd.DataFrame({"view": "cam1", "marker": names, "x_px": beads[:, 0] + 0.8, "y_px": beads[:, 1] - 0.6}).to_csv(
-        seeds, index=False)
-    out = tmp_path / "out"
-    r = CliRunner().invoke(cli, ["track", "--view", f"cam1={frames}", "--seeds", str(seeds), "-o", str(out)])
-    assert r.exit_code == 0, r.output
-    j = json.loads((out / "track.json").read_text())
+    j, m2 = _track_clicked(tmp_path, [(first if i == 0 else later) + rng.normal(0, 1.7, later.shape)
+                                      for i in range(5)], names, beads)
     print(f"diameter {j['diameter_px']:.2f} px ({j['diameter_source']})")
     assert "larger ones" not in j["diameter_source"], j["diameter_source"]
     assert 4.0 < j["diameter_px"] < 6.5
-    m2 = pd.read_csv(out / "markers2d.csv")
     s = m2[m2["frame"] > 0]
     assert s["found"].all() and len(s) == 32
     t = dict(zip(names, beads))
