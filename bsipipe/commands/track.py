@@ -757,7 +757,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
             "track: " + ", ".join(f"{v}'s frames are lossily compressed ({c})" for v, c in lossy.items())
             + ": the codec removes the pixel noise the detector sets its thresholds and each marker's SNR and "
               "sd_px from, and smears small beads, so expect markers lost or taken for clutter and errors larger "
-              "than sd_px (six twins written with OpenCV's mp4v: 93.3 % of the visible positions found within "
+              "than sd_px (six twins written with OpenCV's mp4v: 93.2 % of the visible positions found within "
               "1 px, 99.4 % from their PNG frames); record lossless frames (PNG, TIFF, FFV1) where you can",
             log, views=lossy))
     shifts: dict[str, list] = {}
