@@ -17,7 +17,7 @@ def _ramp(h=24, w=32, dtype=np.uint8, seed=0):
     return rng.integers(0, top, size=(h, w), dtype=dtype, endpoint=True)
 
 
-def _write_dicom(path, frames: np.ndarray, photometric="MONOCHROME2", frame_time_ms=None):
+def _write_dicom(path, frames: np.ndarray, photometric="MONOCHROME2", frame_time_ms=None, frame_time_vector=None):
     """A minimal valid DICOM (Secondary Capture) holding ``frames`` (n, h, w) or (h, w)."""
     from pydicom.dataset import Dataset, FileMetaDataset
     from pydicom.uid import ExplicitVRLittleEndian, SecondaryCaptureImageStorage, generate_uid
@@ -35,6 +35,8 @@ def _write_dicom(path, frames: np.ndarray, photometric="MONOCHROME2", frame_time
                       bits_stored=8 * frames.dtype.itemsize)
     if frame_time_ms is not None:
         ds.FrameTime = frame_time_ms
+    if frame_time_vector is not None:
+        ds.FrameTimeVector = list(frame_time_vector)
     ds.save_as(str(path), enforce_file_format=True)
 
 
@@ -347,3 +349,28 @@ def test_a_frame_missing_from_the_numbering_keeps_its_index(tmp_path):
     for name, k in (("u9.dcm", 1), ("u3.dcm", 2), ("u5.dcm", 4)):
         _series_file(e / name, imgs[[1, 2, 4].index(k)], InstanceNumber=k)
     assert [f.index for f in iter_frames(e)] == [0, 1, 3]
+
+
+def test_frames_a_dicom_source_skipped_keep_their_times_numbers(tmp_path):
+    """A multi-frame DICOM whose FrameTimeVector skips a period (a frame the recorder did not
+    store), and a series numbered without a gap whose acquisition times skip one: the frames
+    after the gap keep the numbers their times give (index 3 left empty), as a folder whose
+    file names skip a number does; times that merely jitter, or run evenly, are counted."""
+    stack = np.stack([_ramp(dtype=np.uint16, seed=s) for s in range(5)])
+    _write_dicom(tmp_path / "gap.dcm", stack, frame_time_vector=[0, 500, 500, 1000, 500])
+    fr = list(iter_frames(tmp_path / "gap.dcm"))
+    assert [f.index for f in fr] == [0, 1, 2, 4, 5]
+    assert [f.time_s for f in fr] == pytest.approx([0.0, 0.5, 1.0, 2.0, 2.5])
+    assert np.array_equal(fr[3].image, stack[3]) and fr[3].name == "gap.dcm#3"
+    _write_dicom(tmp_path / "jitter.dcm", stack, frame_time_vector=[0, 500, 560, 450, 500])
+    assert [f.index for f in iter_frames(tmp_path / "jitter.dcm")] == [0, 1, 2, 3, 4]
+    _write_dicom(tmp_path / "even.dcm", stack, frame_time_ms=500.0)
+    assert [f.index for f in iter_frames(tmp_path / "even.dcm")] == [0, 1, 2, 3, 4]
+    d = tmp_path / "series"
+    d.mkdir()
+    for k, sec in enumerate([10.0, 10.5, 11.0, 12.0, 12.5]):
+        _series_file(d / f"s{k}.dcm", stack[k], InstanceNumber=k + 1, ContentDate="20261121",
+                     ContentTime=f"1200{int(sec):02d}.{int(round((sec % 1) * 1e6)):06d}")
+    fr = list(iter_frames(d))
+    assert [f.index for f in fr] == [0, 1, 2, 4, 5]
+    assert [f.time_s for f in fr] == pytest.approx([0.0, 0.5, 1.0, 2.0, 2.5])

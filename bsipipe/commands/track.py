@@ -710,7 +710,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         from ..quality import warning
         warnings.append(warning(
             "missing-frames",
-            "track: frames missing from the numbering of the files ("
+            "track: frames missing from the numbering of the files or the source's time stamps ("
             + "; ".join(f"{v}: {len(m)} frame(s), {', '.join(map(str, m[:10]))}{', ...' if len(m) > 10 else ''}"
                         for v, m in missing.items())
             + "): their rows are empty (status missing-frame, no 3-D point), and the later frames keep their "

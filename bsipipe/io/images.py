@@ -161,6 +161,24 @@ def _name_numbers(files: list[Path]) -> list[int] | None:
     return [int(m.group(2)) for m in parts]
 
 
+def time_indices(times) -> list[int] | None:
+    """Frame numbers from a source's own time stamps where they skip frames: each interval
+    within a quarter of a whole number of the median interval, some of them two or more (a
+    frame the recorder did not store); None where the stamps are missing, irregular or skip
+    nothing (the frames are then counted)."""
+    if times is None or len(times) < 3 or any(t is None for t in times):
+        return None
+    dt = np.diff(np.asarray(times, float))
+    period = float(np.median(dt)) if len(dt) else 0.0
+    if not np.isfinite(period) or period <= 0:
+        return None
+    m = dt / period
+    r = np.rint(m)
+    if (r < 1).any() or (np.abs(m - r) > 0.25).any() or not (r >= 2).any():
+        return None
+    return [0, *np.cumsum(r).astype(int).tolist()]
+
+
 def _frame_index_of(files: list[Path], series: "_Series | None") -> dict | None:
     """Each file's frame index where the source's counter has gaps (:func:`frame_numbers`),
     else None (frames are counted); a gap is logged."""
@@ -168,6 +186,9 @@ def _frame_index_of(files: list[Path], series: "_Series | None") -> dict | None:
         return None
     nums = series.numbers if series is not None else _name_numbers(files)
     idx = frame_numbers(nums) if nums is not None else None
+    if idx is None and series is not None:
+        # numbered without a gap (or not at all), but the files' own times skip a frame
+        idx = time_indices(series.times)
     if idx is None:
         return None
     have = set(idx)
@@ -586,8 +607,10 @@ def _hash_into(hashes: dict | None, path: Path) -> None:
 
 def _iter_file(path: Path, dtype, channel, hashes: dict | None = None
                ) -> Iterator[tuple[str, np.ndarray, float | None, int]]:
-    """Frames inside one file: (name, gray image, time_s, frame index within the file); with
-    ``hashes``, the file's sha256 is stored in it under ``str(path)``."""
+    """Frames inside one file: (name, gray image, time_s, frame index within the file: its
+    position, or where a multi-frame DICOM's frame times skip a period, its number by time,
+    :func:`time_indices`); with ``hashes``, the file's sha256 is stored in it under
+    ``str(path)``."""
     suf = path.suffix.lower()
     if suf in VIDEO_SUFFIXES:
         _hash_into(hashes, path)
@@ -613,9 +636,11 @@ def _iter_file(path: Path, dtype, channel, hashes: dict | None = None
         a = _dicom_pixels(ds, path)
         n = a.shape[0]
         times = _dicom_frame_times(ds, n)
+        # a FrameTimeVector that skips a frame period: the frames after keep their times' numbers
+        ks = time_indices(times) or range(n)
         for k in range(n):
             name = path.name if n == 1 else f"{path.name}#{k}"
-            yield name, _finish(a[k], dtype, True, channel, path, k if n > 1 else None), times[k], k
+            yield name, _finish(a[k], dtype, True, channel, path, k if n > 1 else None), times[k], ks[k]
     else:
         yield path.name, _finish(_read_cv2(path, hashes), dtype, False, channel, path), None, 0
 
@@ -718,10 +743,12 @@ def iter_frames(source: str | os.PathLike, *, dtype=None, channel: int | None = 
     numbered = _frame_index_of(files, series)
     shape0 = None
     first = None
-    index = 0
+    index = base = 0
     for f, (name, img, t, k) in _files_in_order(files, dtype, channel, hashes, int(workers)):
-        if numbered is not None and k == 0:
-            index = max(index, numbered[f])     # a frame missing from the numbering keeps its index
+        if k == 0:
+            # a frame missing from the numbering (or skipped by a file's own times) keeps its index
+            base = max(index, numbered[f]) if numbered is not None else index
+        index = base + k
         if check_size:
             if shape0 is None:
                 shape0, dtype0, first = img.shape, img.dtype, name
