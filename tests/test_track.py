@@ -475,6 +475,33 @@ def test_cli_track_xmalab_seeds_and_config(tmp_path):
     assert set(m2["marker"]) >= {"F1", "TP", "EPa"} and m2["found"].all()
 
 
+def test_cli_track_xmalab_seeds_placed_only_later_are_named(tmp_path):
+    """An XMALab 2-D file whose TP and F1 points are empty in the first row and set in the
+    second (clicked where they were visible): the seeds are the first frame's, so those two
+    are not followed -- a seeds-after-first-frame warning names them with the frame where the
+    file first places them; the other markers are tracked as from the whole file."""
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k in range(2):
+        (frames / f"f{k}.jpg").write_bytes((XRAY / "sample_frame.jpg").read_bytes())
+    x = pd.read_csv(XRAY / "sample_frame_input.csv")
+    row = x.iloc[[0]].copy()
+    two = pd.concat([row, row], ignore_index=True)
+    for c in ("TP_cam1_X", "TP_cam1_Y", "F1_cam1_X", "F1_cam1_Y"):
+        two.loc[0, c] = np.nan
+    seeds = tmp_path / "xma.csv"
+    two.to_csv(seeds, index=False, na_rep="NaN")
+    out = tmp_path / "out"
+    r = CliRunner().invoke(cli, ["track", "--view", f"cam1={frames}", "--seeds", str(seeds), "--diameter-px", "4",
+                                 "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    w = [w for w in json.loads((out / "track.json").read_text())["warnings"] if w["code"] == "seeds-after-first-frame"]
+    assert len(w) == 1 and w[0]["markers"] == {"cam1": {"TP": 1, "F1": 1}}, w
+    assert "TP (first at frame 1)" in w[0]["message"]
+    m2 = pd.read_csv(out / "markers2d.csv")
+    assert {"TP", "F1"}.isdisjoint(m2["marker"]) and {"EPa", "GHa"} <= set(m2["marker"])
+
+
 @pytest.mark.parametrize("case", ["missing-view", "bad-seeds", "unknown-view-seed", "no-stereo", "bad-key"])
 def test_cli_track_errors(tmp_path, case):
     """Bad input exits 2 with one message naming the file (and line), no traceback, no result."""

@@ -186,13 +186,25 @@ def read_seeds(path, views: Sequence[str], frame_shapes: dict | None = None) -> 
     a seed outside its view's image is an error."""
     from ..io.xmalab import is_xmalab_2d, read_xmalab_2d
     if is_xmalab_2d(path):
-        x = read_xmalab_2d(path)
-        x = x[(x["frame"] == 0) & np.isfinite(x["x_px"]) & np.isfinite(x["y_px"])].copy()
+        allx = read_xmalab_2d(path)
         cams = {f"cam{i + 1}": v for i, v in enumerate(views)}
-        x = x[x["view"].isin(list(cams))]
-        x["view"] = x["view"].map(cams)
+        allx = allx[allx["view"].isin(list(cams)) & np.isfinite(allx["x_px"]) & np.isfinite(allx["y_px"])].copy()
+        allx["view"] = allx["view"].map(cams)
+        x = allx[allx["frame"] == 0]
         x = x[["view", "marker", "x_px", "y_px"]].reset_index(drop=True)
+        # markers the file places only in later frames (clicked where they were visible): the
+        # seeds are frame 0's, so these are not followed in that view -- said, not dropped
+        # silently (``attrs["later"]``: view -> {marker: first frame}, for track.json's warning)
+        held = set(zip(x["view"], x["marker"]))
+        later: dict = {}
+        for (v, m), g in allx.groupby(["view", "marker"], sort=False):
+            if (v, m) not in held:
+                later.setdefault(v, {})[m] = int(g["frame"].min())
         _check_seeds_inside(x, frame_shapes, path, lines=None)
+        if x.empty:
+            raise InputError("no marker has a position in frame 0 (the first row): the seeds are the markers' "
+                             "positions in the first frame", path=path)
+        x.attrs["later"] = later
         return x
     try:
         df = pd.read_csv(path, dtype={"view": str, "marker": str})
@@ -691,6 +703,16 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     fit = None
     cross_view = None
     warnings: list[dict] = []
+    later = seed_df.attrs.get("later") if seed_df is not None else None
+    if later:
+        from ..quality import warning
+        warnings.append(warning(
+            "seeds-after-first-frame",
+            "track: the XMALab seeds file places these markers only in later frames, so they are not followed "
+            "in that view: " + "; ".join(f"{v}: " + ", ".join(f"{m} (first at frame {f})" for m, f in ms.items())
+                                        for v, ms in later.items())
+            + " (seeds are the markers' positions in the first frame: click them there, where they would be)",
+            log, markers=later))
     if polarity_counts is not None and cfg.polarity == "bright":
         from ..quality import warning
         warnings.append(warning(
