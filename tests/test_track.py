@@ -916,3 +916,40 @@ def test_a_bead_another_marker_just_held_is_not_free_for_a_long_lost_one():
     assert a["found"].drop(index=[30, 31, 32]).all()
     e = np.hypot(a["x_px"] - A[0], a["y_px"] - A[1])[a["found"].to_numpy(bool)]
     assert e.max() < 0.5
+
+
+def test_cli_track_views_at_different_magnifications_get_their_own_diameter(tmp_path):
+    """The same five beads seen 5 px across in one view and 9 px in the other (C-arms at
+    different magnifications), seeds in both, no --diameter-px: each view's diameter is
+    estimated from its own seeds (they differ by more than 25 %) and every bead is found
+    within 0.3 px in both views (with one diameter for both, the larger view's beads were
+    measured with a top-hat sized for the smaller)."""
+    rng = np.random.default_rng(8)
+    size = 200
+    beads = np.array([[50.3, 60.7], [140.2, 55.1], [60.6, 140.4], [100.5, 100.2], [150.4, 140.6]])
+    field = RayField(bead_camera(size))
+    seeds, truth = [], {}
+    for v, dia in (("cam1", 5.0), ("cam2", 9.0)):
+        base = render_beads(beads, dia, size, None, field=field, noise=False, quantize=False)
+        d = tmp_path / v
+        d.mkdir()
+        for i in range(3):
+            cv2.imwrite(str(d / f"f{i}.png"),
+                        np.clip(np.rint(base + rng.normal(0, 1.7, base.shape)), 0, 255).astype(np.uint8))
+        for k, (x, y) in enumerate(beads):
+            seeds.append({"view": v, "marker": f"B{k}", "x_px": x + 0.8, "y_px": y - 0.6})
+            truth[(v, f"B{k}")] = (x, y)
+    pd.DataFrame(seeds).to_csv(tmp_path / "seeds.csv", index=False)
+    out = tmp_path / "out"
+    r = CliRunner().invoke(cli, ["track", "--view", f"cam1={tmp_path / 'cam1'}", "--view", f"cam2={tmp_path / 'cam2'}",
+                                 "--seeds", str(tmp_path / "seeds.csv"), "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    j = json.loads((out / "track.json").read_text())
+    dv = j["diameter_px_per_view"]
+    print(f"diameters {dv} ({j['diameter_source']})")
+    assert dv["cam2"] > 1.25 * dv["cam1"]
+    m2 = pd.read_csv(out / "markers2d.csv")
+    assert m2["found"].all() and len(m2) == 30
+    e = np.hypot(*(m2[["x_px", "y_px"]].to_numpy() - np.array([truth[(v, m)] for v, m in zip(m2["view"], m2["marker"])])).T)
+    print(f"centre error max {e.max():.3f} px")
+    assert e.max() < 0.3

@@ -400,7 +400,12 @@ def _estimate_diameter(first: np.ndarray, seeds: pd.DataFrame, polarity: str) ->
         r = refine_at(first, pts, d, polarity, search_radius_px=max(6.0, 0.5 * d))
         return r["found"].to_numpy(bool) & np.isfinite(r["sigma_px"].to_numpy()), r["sigma_px"].to_numpy()
 
-    ok, s = found_at(4.0, xy)
+    # first probed at 4 px, then 8 and 16 px (markers much larger than 4 px are not seen by a
+    # top-hat that small)
+    for d0 in (4.0, 8.0, 16.0):
+        ok, s = found_at(d0, xy)
+        if ok.any():
+            break
     if not ok.any():
         return 4.0, "default: no seeded marker measured in the first frame"
     d = float(np.clip(2.5 * np.median(s[ok]), 2.0, 40.0))
@@ -565,7 +570,7 @@ def _missing_frame_rows(table: pd.DataFrame, missing: dict[str, list[int]], fps:
     return out.iloc[np.lexsort((out["frame"].to_numpy(), rank.to_numpy()))].reset_index(drop=True)
 
 
-def _track_views(cfg, views, seed_df, d: float, det, tk, progress: bool):
+def _track_views(cfg, views, seed_df, d: dict, det, tk, progress: bool):
     """Track every view (:func:`bsipipe.imaging.track.track_view`), frames decoded ahead on
     threads (a pool for a folder of frames, :func:`decode_workers`; :func:`prefetched` for
     every source, so videos and stacks overlap too); returns the per-view tables, the events, the per-view info, each view's first
@@ -601,7 +606,7 @@ def _track_views(cfg, views, seed_df, d: float, det, tk, progress: bool):
 
         try:
             frames = iter_frames(path, channel=cfg.channel, hashes=frame_hashes, workers=decode_workers())
-            res = track_view(prefetched(frames), s, d, cfg.polarity, view=v,
+            res = track_view(prefetched(frames), s, d[v], cfg.polarity, view=v,
                              fps=cfg.fps, roi=cfg.detection.roi, detection=det, settings=tk, on_frame=on_frame)
         except ValueError as e:
             raise InputError(str(e), path=path) from None
@@ -650,15 +655,29 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         log.info("track: markers %s (%s)", pol, polarity_note)
     d = cfg.diameter_px
     diameter_note = "given"
+    per_view_d = {v: d for v in views}
     if d is None:
-        v0 = seed_df["view"].iloc[0] if seed_df is not None else None
-        if v0 is not None and firsts.get(v0) is not None:
-            d, how = _estimate_diameter(firsts[v0], seed_df[seed_df["view"] == v0], cfg.polarity)
+        seeded = [v for v in dict.fromkeys(seed_df["view"])] if seed_df is not None else []
+        est = {v: _estimate_diameter(firsts[v], seed_df[seed_df["view"] == v], cfg.polarity)
+               for v in seeded if firsts.get(v) is not None}
+        if est:
+            v0 = next(iter(est))
+            d, how = est[v0]
             diameter_note = f"{v0}: {how}"
+            per_view_d = {v: d for v in views}
+            ds = [e[0] for e in est.values()]
+            if max(ds) > 1.25 * min(ds):
+                # the views see the markers at different sizes (C-arms at different
+                # magnifications, an intensifier in another field mode): each its own diameter
+                # (within 25 % the first view's, so one noisy estimate does not split them)
+                per_view_d.update({v: e[0] for v, e in est.items()})
+                diameter_note = "; ".join(f"{v}: {e[1]}" for v, e in est.items()) + " (a diameter per view)"
         else:
             d = 4.0
+            per_view_d = {v: d for v in views}
             diameter_note = "default (no --diameter-px, no seeds)"
-        log.info("track: marker diameter %.2f px (%s)", d, diameter_note)
+        log.info("track: marker diameter %s (%s)", ", ".join(f"{v} {x:.2f} px" for v, x in per_view_d.items())
+                 if len(set(per_view_d.values())) > 1 else f"{d:.2f} px", diameter_note)
     del firsts
     det = DetectionSettings(k_sigma=cfg.detection.k_sigma, window_k_sigma=cfg.detection.window_k_sigma,
                             min_snr=cfg.detection.min_snr, method=cfg.detection.method,
@@ -682,7 +701,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     cv2.setNumThreads(1)
     try:
         tables, events, info, first_images, frame_hashes = _track_views(
-            cfg, views, seed_df, d, det, tk, progress)
+            cfg, views, seed_df, per_view_d, det, tk, progress)
     finally:
         cv2.setNumThreads(cv2_threads)
     table = pd.concat(tables, ignore_index=True)
@@ -822,7 +841,8 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         del sub
         if det.parity == "none":
             # the frames can be searched again in windows, for the loop's track-capture
-            data.windows = WindowSource({v: cfg.views[v] for v in pair}, d, cfg.polarity, det, channel=cfg.channel,
+            data.windows = WindowSource({v: cfg.views[v] for v in pair}, {v: per_view_d[v] for v in pair},
+                                        cfg.polarity, det, channel=cfg.channel,
                                         workers=decode_workers())
         if not data.markers:
             raise InputError(f"no marker is tracked in both {pair[0]} and {pair[1]} (the seeds must use the same "
@@ -970,7 +990,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     result: dict = {
         "views": info,
         "xmalab_cameras": {f"cam{i + 1}": v for i, v in enumerate(views)},
-        "diameter_px": d, "diameter_source": diameter_note, "polarity": cfg.polarity, "polarity_source": polarity_note,
+        "diameter_px": d, "diameter_px_per_view": per_view_d, "diameter_source": diameter_note, "polarity": cfg.polarity, "polarity_source": polarity_note,
         "markers": markers,
         "events": events,
         "warnings": warnings,

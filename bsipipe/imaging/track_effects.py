@@ -973,10 +973,12 @@ class WindowSource:
     those reads.
     """
 
-    def __init__(self, sources: dict, diameter_px: float, polarity="dark", detection=None, *,
+    def __init__(self, sources: dict, diameter_px: float | dict, polarity="dark", detection=None, *,
                  channel: int | None = None, workers: int = 1):
         self.sources = dict(sources)
-        self.diameter_px = float(diameter_px)
+        # one diameter, or one per view (views at different magnifications)
+        self.diameters = ({v: float(diameter_px[v]) for v in self.sources} if isinstance(diameter_px, dict)
+                          else {v: float(diameter_px) for v in self.sources})
         self.polarity = polarity
         self.detection = detection
         self.channel = channel
@@ -1006,7 +1008,7 @@ class WindowSource:
                     continue
                 c = np.array([[q[1], q[2]] for q in qs], float)
                 r = np.array([q[3] for q in qs], float)
-                cand = window_arrays(fr.image, c, r, self.diameter_px, self.polarity, det)
+                cand = window_arrays(fr.image, c, r, self.diameters[view], self.polarity, det)
                 xy = np.column_stack([cand["x_px"], cand["y_px"]])
                 for q, cc, rr in zip(qs, c, r):
                     inside = np.hypot(xy[:, 0] - cc[0], xy[:, 1] - cc[1]) <= rr
@@ -1065,10 +1067,10 @@ def _refind(d: StereoData, x: tuple, shifts: tuple, j: int, idx: np.ndarray, tol
     the picks (index into ``idx``; per view the positions and the candidates' columns) or None."""
     from .track import _apart
     src = d.windows
-    dpx = src.diameter_px
     per_view = []
     for k in (0, 1):
         own, other = x[k], x[1 - k]
+        dpx = src.diameters[d.views[k].name]
         req, radius = _refind_windows(d, own, other, shifts[k], j, idx, dpx)
         got = src.candidates(d.views[k].name, req) if req else {}
         raw_own = own + shifts[k][:, None, :]
@@ -1175,12 +1177,13 @@ def find_captures(d: StereoData, xa: np.ndarray, xb: np.ndarray, shifts: tuple |
         own, other = (xa, xb) if k == 0 else (xb, xa)
         req: dict = {}
         for j, r0, r1 in runs:
-            for f, q in _refind_windows(d, own, other, shifts[k], j, np.arange(r0, r1), d.windows.diameter_px)[0].items():
+            for f, q in _refind_windows(d, own, other, shifts[k], j, np.arange(r0, r1),
+                                        d.windows.diameters[d.views[k].name])[0].items():
                 req.setdefault(f, []).extend(q)
         if req:
             d.windows.candidates(d.views[k].name, req)
     done: dict[int, set] = {}
-    near = max(1.5, 0.5 * d.windows.diameter_px)
+    near = {k: max(1.5, 0.5 * d.windows.diameters[d.views[k].name]) for k in (0, 1)}
     for j, r0, r1 in runs:
         idx = np.arange(r0, r1)
         if done.get(j, set()) >= set(idx.tolist()):
@@ -1198,7 +1201,7 @@ def find_captures(d: StereoData, xa: np.ndarray, xb: np.ndarray, shifts: tuple |
             held = (xa, xb)[k][idx[r["i"][moved]], j]
             c = np.median(held, axis=0)
             if np.median(np.hypot(*(held - c).T)) < 0.5:
-                exclude[k] = (float(c[0]), float(c[1]), near)
+                exclude[k] = (float(c[0]), float(c[1]), near[k])
         if exclude:
             on = np.zeros(len(d.frames), bool)
             on[idx] = True
