@@ -953,3 +953,30 @@ def test_cli_track_views_at_different_magnifications_get_their_own_diameter(tmp_
     e = np.hypot(*(m2[["x_px", "y_px"]].to_numpy() - np.array([truth[(v, m)] for v, m in zip(m2["view"], m2["marker"])])).T)
     print(f"centre error max {e.max():.3f} px")
     assert e.max() < 0.3
+
+
+@pytest.mark.parametrize("dia", [9.0, 14.0])
+def test_cli_track_without_seeds_or_diameter_finds_large_beads(tmp_path, dia):
+    """No seeds and no --diameter-px, beads 9 or 14 px across: the default 4 px top-hat finds
+    none of them (the command used to stop: "no marker was found in any frame"), so 8 and
+    16 px are tried and the diameter taken from what they find; every bead in every frame
+    within 0.3 px."""
+    from scipy.spatial import cKDTree
+    rng = np.random.default_rng(8)
+    size = 200
+    beads = np.array([[50.3, 60.7], [140.2, 55.1], [60.6, 140.4], [100.5, 100.2], [150.4, 140.6]])
+    base = render_beads(beads, dia, size, None, field=RayField(bead_camera(size)), noise=False, quantize=False)
+    frames = tmp_path / "cam1"
+    frames.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(frames / f"f{i}.png"),
+                    np.clip(np.rint(base + rng.normal(0, 1.7, base.shape)), 0, 255).astype(np.uint8))
+    out = tmp_path / "out"
+    r = CliRunner().invoke(cli, ["track", "--view", f"cam1={frames}", "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    j = json.loads((out / "track.json").read_text())
+    print(f"{dia:g} px beads: diameter {j['diameter_px']:.2f} px ({j['diameter_source']})")
+    assert "estimated without seeds" in j["diameter_source"]
+    m2 = pd.read_csv(out / "markers2d.csv")
+    assert m2["marker"].nunique() == 5 and m2["found"].all() and len(m2) == 15
+    assert cKDTree(beads).query(m2[["x_px", "y_px"]].to_numpy())[0].max() < 0.3

@@ -381,6 +381,31 @@ def _polarity_from_frames(firsts: dict, diameter_px: float | None) -> tuple[str,
                  f"frames"), n
 
 
+def _diameter_without_seeds(first: np.ndarray, polarity: str) -> tuple[float, str]:
+    """Marker diameter of a view without seeds, from its first frame searched whole
+    (:func:`~bsipipe.imaging.detect.detect_arrays`): 4 px (the default) where that finds 3 or
+    more markers of SNR 6 or more; else the first of 8 and 16 px that does, refined to 2.5
+    times the median fitted width of what it finds (markers much larger than 4 px are not
+    seen by a top-hat that small, and the command would find nothing)."""
+    from ..imaging.detect import detect_arrays
+
+    def strong(d):
+        r = detect_arrays(first, d, polarity)
+        ok = (r["snr"] >= 6.0) & np.isfinite(r["sigma_px"])
+        return int(ok.sum()), r["sigma_px"][ok]
+
+    n4, _ = strong(4.0)
+    if n4 >= 3:
+        return 4.0, f"default 4 px (no --diameter-px, no seeds; {n4} markers of SNR 6 or more in the first frame)"
+    for d0 in (8.0, 16.0):
+        n, sig = strong(d0)
+        if n >= 3:
+            d = float(np.clip(2.5 * np.median(sig), 2.0, 40.0))
+            return d, (f"estimated without seeds: 4 px found {n4} markers of SNR 6 or more in the first frame, "
+                       f"{d0:g} px {n}; 2.5 x their median fitted sigma")
+    return 4.0, "default 4 px (no --diameter-px, no seeds; no size tried finds 3 markers of SNR 6 or more)"
+
+
 def _estimate_diameter(first: np.ndarray, seeds: pd.DataFrame, polarity: str) -> tuple[float, str]:
     """Marker diameter from the seeds of one view, and a note: 2.5 times the median fitted
     Gaussian sigma of the seeded markers in the first frame (a bead of diameter d blurred by
@@ -638,7 +663,8 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         if not (os.path.exists(p) or any(c in p for c in "*?[")):
             raise InputError(f"view {v}: no such file or folder", path=p)
     # each view's first frame, for the seeds' check, the polarity and the diameter (then let go)
-    firsts = _first_frames(cfg.views, cfg.channel) if cfg.seeds or cfg.polarity == "auto" else {}
+    firsts = (_first_frames(cfg.views, cfg.channel)
+              if cfg.seeds or cfg.polarity == "auto" or cfg.diameter_px is None else {})
     shapes = {v: None if im is None else im.shape for v, im in firsts.items()}
     seed_df = read_seeds(cfg.seeds, views, shapes) if cfg.seeds else None
     rig = None
@@ -670,6 +696,16 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
                 # the views see the markers at different sizes (C-arms at different
                 # magnifications, an intensifier in another field mode): each its own diameter
                 # (within 25 % the first view's, so one noisy estimate does not split them)
+                per_view_d.update({v: e[0] for v, e in est.items()})
+                diameter_note = "; ".join(f"{v}: {e[1]}" for v, e in est.items()) + " (a diameter per view)"
+        elif seed_df is None and any(im is not None for im in firsts.values()):
+            est = {v: _diameter_without_seeds(im, cfg.polarity) for v, im in firsts.items() if im is not None}
+            v0 = next(iter(est))
+            d, how = est[v0]
+            diameter_note = f"{v0}: {how}"
+            per_view_d = {v: d for v in views}
+            ds = [e[0] for e in est.values()]
+            if max(ds) > 1.25 * min(ds):
                 per_view_d.update({v: e[0] for v, e in est.items()})
                 diameter_note = "; ".join(f"{v}: {e[1]}" for v, e in est.items()) + " (a diameter per view)"
         else:
