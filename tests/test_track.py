@@ -955,11 +955,12 @@ def test_cli_track_views_at_different_magnifications_get_their_own_diameter(tmp_
     assert e.max() < 0.3
 
 
-@pytest.mark.parametrize("dia", [9.0, 14.0])
-def test_cli_track_without_seeds_or_diameter_finds_large_beads(tmp_path, dia):
-    """No seeds and no --diameter-px, beads 9 or 14 px across: the default 4 px top-hat finds
-    none of them (the command used to stop: "no marker was found in any frame"), so 8 and
-    16 px are tried and the diameter taken from what they find; every bead in every frame
+@pytest.mark.parametrize("dia,bright", [(9.0, False), (14.0, False), (9.0, True)])
+def test_cli_track_without_seeds_or_diameter_finds_large_beads(tmp_path, dia, bright):
+    """No seeds and no --diameter-px, beads 9 or 14 px across (dark, or bright as in an
+    inverted export): the default 4 px top-hat finds none of them (the command used to stop:
+    "no marker was found in any frame"), so the polarity and the diameter are looked for at
+    8 and 16 px as well, the diameter taken from what they find; every bead in every frame
     within 0.3 px."""
     from scipy.spatial import cKDTree
     rng = np.random.default_rng(8)
@@ -969,14 +970,16 @@ def test_cli_track_without_seeds_or_diameter_finds_large_beads(tmp_path, dia):
     frames = tmp_path / "cam1"
     frames.mkdir()
     for i in range(3):
-        cv2.imwrite(str(frames / f"f{i}.png"),
-                    np.clip(np.rint(base + rng.normal(0, 1.7, base.shape)), 0, 255).astype(np.uint8))
+        img = np.clip(np.rint(base + rng.normal(0, 1.7, base.shape)), 0, 255).astype(np.uint8)
+        cv2.imwrite(str(frames / f"f{i}.png"), 255 - img if bright else img)
     out = tmp_path / "out"
     r = CliRunner().invoke(cli, ["track", "--view", f"cam1={frames}", "-o", str(out)])
     assert r.exit_code == 0, r.output
     j = json.loads((out / "track.json").read_text())
-    print(f"{dia:g} px beads: diameter {j['diameter_px']:.2f} px ({j['diameter_source']})")
+    print(f"{dia:g} px {'bright' if bright else 'dark'} beads: diameter {j['diameter_px']:.2f} px "
+          f"({j['diameter_source']}); {j['polarity']} ({j['polarity_source']})")
     assert "estimated without seeds" in j["diameter_source"]
+    assert j["polarity"] == ("bright" if bright else "dark")
     m2 = pd.read_csv(out / "markers2d.csv")
     assert m2["marker"].nunique() == 5 and m2["found"].all() and len(m2) == 15
     assert cKDTree(beads).query(m2[["x_px", "y_px"]].to_numpy())[0].max() < 0.3

@@ -370,15 +370,20 @@ def _polarity_from_frames(firsts: dict, diameter_px: float | None) -> tuple[str,
     spots and hardly any bright ones; bright is taken only where it finds at least 3 and
     twice as many as dark.  ``firsts``: each view's first frame (:func:`_first_frames`)."""
     from ..imaging.detect import detect_arrays
-    n = {"dark": 0, "bright": 0}
-    for img in firsts.values():
-        if img is None:
-            continue
-        for p in n:
-            n[p] += int((detect_arrays(img, diameter_px or 4.0, p)["snr"] >= 6.0).sum())
+    # without a diameter, at 4 px, then 8 and 16 px where 4 px finds fewer than 3 of either
+    # (markers much larger than 4 px are not seen by a top-hat that small)
+    for d in ([diameter_px] if diameter_px else [4.0, 8.0, 16.0]):
+        n = {"dark": 0, "bright": 0}
+        for img in firsts.values():
+            if img is None:
+                continue
+            for p in n:
+                n[p] += int((detect_arrays(img, d, p)["snr"] >= 6.0).sum())
+        if max(n.values()) >= 3:
+            break
     pol = "bright" if n["bright"] >= 3 and n["bright"] >= 2 * n["dark"] else "dark"
     return pol, (f"auto: no seeds; {n['dark']} dark and {n['bright']} bright markers of SNR 6 or more in the first "
-                 f"frames"), n
+                 f"frames{'' if d == 4.0 or diameter_px else f' at {d:g} px'}"), n
 
 
 def _diameter_without_seeds(first: np.ndarray, polarity: str) -> tuple[float, str]:
