@@ -1066,7 +1066,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         rs.add_figure("track.png", trajectories_figure(table, points3d, title="bsipipe track"), tight=False)
         rs.add_figure("overlay.png", overlay_figure(first_images, table, {v: int(table.loc[table["view"] == v, "frame"].min())
                                                                            for v in first_images},
-                                                    seed_df, d), tight=False)
+                                                    seed_df, per_view_d), tight=False)
     inputs = [p for p in cfg.views.values()] + [p for p in (cfg.calibration, cfg.seeds) if p]
     result["provenance"] = provenance(cfg, inputs, command="track", known_hashes=frame_hashes)
     rs.add_json("track.json", result)

@@ -72,7 +72,7 @@ def trajectories_figure(table2d: pd.DataFrame, points3d: pd.DataFrame | None = N
 
 
 def overlay_figure(images: dict[str, np.ndarray], table2d: pd.DataFrame, frame: dict[str, int],
-                   seeds: pd.DataFrame | None = None, diameter_px: float = 4.0):
+                   seeds: pd.DataFrame | None = None, diameter_px: float | dict = 4.0):
     """One frame per view with the tracked markers (circles, names) and the seeds (+).
     Each panel is cropped to the markers with a margin, so small beads stay visible."""
     from matplotlib.patches import Circle
@@ -84,7 +84,7 @@ def overlay_figure(images: dict[str, np.ndarray], table2d: pd.DataFrame, frame: 
         t = table2d[(table2d["view"] == v) & (table2d["frame"] == frame[v])]
         ok = t[t["found"].astype(bool)]
         lo, hi = (float(q) for q in np.percentile(img, [1, 99.5]))
-        r = max(2.0 * diameter_px, 6.0)
+        r = max(2.0 * (diameter_px[v] if isinstance(diameter_px, dict) else diameter_px), 6.0)
         pts = ok[["x_px", "y_px"]].to_numpy()
         h, w = img.shape
         # only the pixels the cropped panel shows are drawn (resampling a whole 1024 x 1024
