@@ -386,6 +386,24 @@ def _polarity_from_frames(firsts: dict, diameter_px: float | None) -> tuple[str,
                  f"frames{'' if d == 4.0 or diameter_px else f' at {d:g} px'}"), n
 
 
+def _view_diameters(est: dict, views) -> tuple[float, dict, str]:
+    """The diameter (the first estimated view's), one per view and the note, from each view's
+    estimate ``est`` (view -> (diameter, note)).  Where the estimates differ by more than 25 %
+    the views see the markers at different sizes (C-arms at different magnifications, an
+    intensifier in another field mode) and each keeps its own; within 25 % all take the first
+    view's, so one noisy estimate does not split them.  No estimate: 4 px."""
+    if not est:
+        return 4.0, {v: 4.0 for v in views}, "default (no --diameter-px, no seeds)"
+    v0 = next(iter(est))
+    d, how = est[v0]
+    per_view = {v: d for v in views}
+    ds = [e[0] for e in est.values()]
+    if max(ds) > 1.25 * min(ds):
+        per_view.update({v: e[0] for v, e in est.items()})
+        return d, per_view, "; ".join(f"{v}: {e[1]}" for v, e in est.items()) + " (a diameter per view)"
+    return d, per_view, f"{v0}: {how}"
+
+
 def _diameter_without_seeds(first: np.ndarray, polarity: str) -> tuple[float, str]:
     """Marker diameter of a view without seeds, from its first frame searched whole
     (:func:`~bsipipe.imaging.detect.detect_arrays`): 4 px (the default) where that finds 3 or
@@ -688,35 +706,12 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     diameter_note = "given"
     per_view_d = {v: d for v in views}
     if d is None:
-        seeded = [v for v in dict.fromkeys(seed_df["view"])] if seed_df is not None else []
-        est = {v: _estimate_diameter(firsts[v], seed_df[seed_df["view"] == v], cfg.polarity)
-               for v in seeded if firsts.get(v) is not None}
-        if est:
-            v0 = next(iter(est))
-            d, how = est[v0]
-            diameter_note = f"{v0}: {how}"
-            per_view_d = {v: d for v in views}
-            ds = [e[0] for e in est.values()]
-            if max(ds) > 1.25 * min(ds):
-                # the views see the markers at different sizes (C-arms at different
-                # magnifications, an intensifier in another field mode): each its own diameter
-                # (within 25 % the first view's, so one noisy estimate does not split them)
-                per_view_d.update({v: e[0] for v, e in est.items()})
-                diameter_note = "; ".join(f"{v}: {e[1]}" for v, e in est.items()) + " (a diameter per view)"
-        elif seed_df is None and any(im is not None for im in firsts.values()):
-            est = {v: _diameter_without_seeds(im, cfg.polarity) for v, im in firsts.items() if im is not None}
-            v0 = next(iter(est))
-            d, how = est[v0]
-            diameter_note = f"{v0}: {how}"
-            per_view_d = {v: d for v in views}
-            ds = [e[0] for e in est.values()]
-            if max(ds) > 1.25 * min(ds):
-                per_view_d.update({v: e[0] for v, e in est.items()})
-                diameter_note = "; ".join(f"{v}: {e[1]}" for v, e in est.items()) + " (a diameter per view)"
+        if seed_df is not None:
+            est = {v: _estimate_diameter(firsts[v], seed_df[seed_df["view"] == v], cfg.polarity)
+                   for v in dict.fromkeys(seed_df["view"]) if firsts.get(v) is not None}
         else:
-            d = 4.0
-            per_view_d = {v: d for v in views}
-            diameter_note = "default (no --diameter-px, no seeds)"
+            est = {v: _diameter_without_seeds(im, cfg.polarity) for v, im in firsts.items() if im is not None}
+        d, per_view_d, diameter_note = _view_diameters(est, views)
         log.info("track: marker diameter %s (%s)", ", ".join(f"{v} {x:.2f} px" for v, x in per_view_d.items())
                  if len(set(per_view_d.values())) > 1 else f"{d:.2f} px", diameter_note)
     del firsts
