@@ -788,3 +788,23 @@ def test_views_at_different_frame_rates_are_a_warning(tmp_path):
     assert len(w) == 1 and w[0]["frames_per_s"] == pytest.approx({"cam1": 4.0, "cam2": 2.0})
     assert "cam1 4, cam2 2 frames/s" in w[0]["message"]
     assert outs[(4.0, 4.0)] == []
+
+
+def test_frames_of_another_size_than_the_calibration_are_refused(base, tmp_path):
+    """cam1's frames binned 2x2 (an export at half size) against a calibration made at full
+    size: the camera matrix would send every ray wrong (the ray gaps were 8.5 mm on the bench
+    twin, with only a large-ray-gap warning).  Refused before any tracking: exit 2, the
+    message names the calibration file and both sizes, nothing written."""
+    import cv2
+    src = base.synth / "sequence/cam1"
+    cam1 = tmp_path / "cam1"
+    cam1.mkdir()
+    for f in sorted(src.iterdir())[:4]:
+        im = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(cam1 / f.name), cv2.resize(im, (im.shape[1] // 2, im.shape[0] // 2), interpolation=cv2.INTER_AREA))
+    h, w = im.shape[:2]
+    out = tmp_path / "out"
+    code, _, err, exc = _invoke(_track_args(base, cam1=cam1) + ["-o", out])
+    assert exc is None and code == 2, err
+    assert "calibration.json" in err and f"{w // 2}x{h // 2} px" in err and f"{w}x{h} px" in err, err
+    assert not out.exists()

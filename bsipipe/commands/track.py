@@ -687,12 +687,21 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
             raise InputError(f"view {v}: no such file or folder", path=p)
     # each view's first frame, for the seeds' check, the polarity and the diameter (then let go)
     firsts = (_first_frames(cfg.views, cfg.channel)
-              if cfg.seeds or cfg.polarity == "auto" or cfg.diameter_px is None else {})
+              if cfg.seeds or cfg.polarity == "auto" or cfg.diameter_px is None or cfg.calibration else {})
     shapes = {v: None if im is None else im.shape for v, im in firsts.items()}
-    seed_df = read_seeds(cfg.seeds, views, shapes) if cfg.seeds else None
     rig = None
     if cfg.calibration:
         rig, pair = _read_calibration(cfg.calibration, views)
+        for v in pair:
+            size, shape = rig[v].image_size, shapes.get(v)
+            if size and shape is not None and (int(shape[1]), int(shape[0])) != (int(size[0]), int(size[1])):
+                # the camera matrix holds for the image it was calibrated on: frames binned, cropped
+                # or exported at another size would be triangulated through the wrong rays
+                raise InputError(f"view {v!r}: its frames are {shape[1]}x{shape[0]} px, the calibration's camera "
+                                 f"{v!r} is {size[0]}x{size[1]} px (frames binned, cropped or exported at another "
+                                 "size): calibrate from frames of this size, or track frames of the calibrated size",
+                                 path=cfg.calibration)
+    seed_df = read_seeds(cfg.seeds, views, shapes) if cfg.seeds else None
     polarity_note = "given"
     polarity_counts = None
     if cfg.polarity == "auto":
