@@ -505,7 +505,7 @@ def test_automatic_tracks_pair_across_views_among_static_spots():
 
 
 @pytest.mark.parametrize("view,turn", [("cam2", "mirrored left-right"), ("cam1", "turned 180 degrees"),
-                                       ("cam2", "turned 90 degrees clockwise")])
+                                       ("cam2", "turned 90 degrees clockwise"), ("cam1 and cam2", "swapped")])
 def test_a_view_mirrored_or_turned_against_the_calibration_is_named(view, turn):
     """One view's positions as in frames exported mirrored or turned (the calibration from
     frames oriented otherwise): the rays pass far apart; turned back they meet at the noise.
@@ -516,13 +516,18 @@ def test_a_view_mirrored_or_turned_against_the_calibration_is_named(view, turn):
     tab, _ = _moving_tracks(cams)
     shapes = {"cam1": (1024, 1024), "cam2": (1024, 1024)}
     assert orientation_check(stereo_data(tab, (V["cam1"], V["cam2"])), shapes) is None
-    # the view's frames turned so: its positions moved as the pixels are
-    turned = dict(_orientations(1024, 1024))[turn]
-    np.testing.assert_allclose(turned(np.array([[0.0, 0.0], [1023.0, 0.0]])),
-                               {"mirrored left-right": [[1023, 0], [0, 0]], "turned 180 degrees": [[1023, 1023], [0, 1023]],
-                                "turned 90 degrees clockwise": [[1023, 0], [1023, 1023]]}[turn])
-    sel = tab["view"] == view
-    tab.loc[sel, ["x_px", "y_px"]] = turned(tab.loc[sel, ["x_px", "y_px"]].to_numpy())
+    if turn == "swapped":
+        # each view's frames are the other camera's
+        tab["view"] = tab["view"].map({"cam1": "cam2", "cam2": "cam1"})
+    else:
+        # the view's frames turned so: its positions moved as the pixels are
+        turned = dict(_orientations(1024, 1024))[turn]
+        np.testing.assert_allclose(turned(np.array([[0.0, 0.0], [1023.0, 0.0]])),
+                                   {"mirrored left-right": [[1023, 0], [0, 0]],
+                                    "turned 180 degrees": [[1023, 1023], [0, 1023]],
+                                    "turned 90 degrees clockwise": [[1023, 0], [1023, 1023]]}[turn])
+        sel = tab["view"] == view
+        tab.loc[sel, ["x_px", "y_px"]] = turned(tab.loc[sel, ["x_px", "y_px"]].to_numpy())
     r = orientation_check(stereo_data(tab, (V["cam1"], V["cam2"])), shapes)
     print(f"{view} {turn}: median ray gap {r['median_gap_as_is_mm']:.3f} mm as is, {r['median_gap_mm']:.4f} mm "
           f"{r['orientation']}")

@@ -897,13 +897,18 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         turned = orientation_check(data, {v: info[v]["frame_shape_px"] for v in pair})
         if turned is not None:
             from ..quality import warning
+            what = (f"the frames of {turned['view']} look swapped against the calibration (each view's frames "
+                    "are the other camera's)" if turned["orientation"] == "swapped" else
+                    f"{turned['view']}'s frames look {turned['orientation']} against the calibration")
             warnings.append(warning(
                 "view-orientation",
-                f"track: {turned['view']}'s frames look {turned['orientation']} against the calibration: "
-                f"the rays' median gap is {turned['median_gap_mm']:.3g} mm with its positions so turned, "
+                f"track: {what}: "
+                f"the rays' median gap is {turned['median_gap_mm']:.3g} mm with the positions so turned, "
                 f"{turned['median_gap_as_is_mm']:.3g} mm as the frames are ({turned['n_points']} two-view points); "
-                "the 3-D points are triangulated as the frames are: export the frames as the calibration images "
-                "were, or calibrate from frames oriented as these", log, **turned))
+                "the 3-D points are triangulated as the frames are: "
+                + ("give each --view its own camera's frames" if turned["orientation"] == "swapped" else
+                   "export the frames as the calibration images were, or calibrate from frames oriented as these"),
+                log, **turned))
         loop_dict["time_unit"] = time_unit
         points3d = fit.points.copy()
         if time_unit == "frame":

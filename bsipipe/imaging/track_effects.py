@@ -1677,9 +1677,10 @@ _INVERSE = {"turned 90 degrees clockwise": "turned 90 degrees anticlockwise",
 
 def orientation_check(d: StereoData, shapes: dict, *, factor: float = 4.0, min_markers: int = 4) -> dict | None:
     """Whether one view's frames look turned or mirrored against the calibration (an export
-    that flips the picture, the calibration taken from frames oriented otherwise): the
-    two-view points' median |ray gap| as the frames are, and with each view's positions
-    mirrored or turned (:func:`_orientations`) in turn.  Returns the orientation the frames
+    that flips the picture, the calibration taken from frames oriented otherwise), or the two
+    views' frames given the other way round: the two-view points' median |ray gap| as the
+    frames are, with each view's positions mirrored or turned (:func:`_orientations`) in
+    turn, and with the views exchanged (frames of one size).  Returns the orientation the frames
     look to have (view, the name of the turn that, undone, fits best, median gaps) where it brings the median gap down ``factor`` times or more,
     with at least ``min_markers`` markers seen in both views; else None.  ``shapes``: view
     name -> (h, w) of its frames."""
@@ -1703,6 +1704,12 @@ def orientation_check(d: StereoData, shapes: dict, *, factor: float = 4.0, min_m
             if best is None or m < best["median_gap_mm"]:
                 # the frames are turned the inverse way of the map that brings them back
                 best = {"view": v.name, "orientation": _INVERSE.get(name, name), "median_gap_mm": m}
+    # the two views' frames given the other way round (--view cam1=<cam2's frames> ...)
+    if all(shapes.get(v.name) is not None for v in d.views) and \
+            tuple(shapes[d.views[0].name]) == tuple(shapes[d.views[1].name]):
+        m = float(np.median(np.abs(ray_gaps(d.views, ub, ua))))
+        if best is None or m < best["median_gap_mm"]:
+            best = {"view": f"{d.views[0].name} and {d.views[1].name}", "orientation": "swapped", "median_gap_mm": m}
     if best is None or not best["median_gap_mm"] * factor <= as_is:
         return None
     return {**best, "median_gap_as_is_mm": as_is, "n_points": int(both.sum())}
