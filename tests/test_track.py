@@ -955,6 +955,39 @@ def test_cli_track_views_at_different_magnifications_get_their_own_diameter(tmp_
     assert e.max() < 0.3
 
 
+def test_config_gives_a_diameter_per_view(tmp_path):
+    """``diameter_px: {cam1: 5, cam2: 9}`` in a track config: each view tracked at its own
+    diameter (track.json ``diameter_px_per_view``, source "given per view"), every bead within
+    0.3 px; a per-view diameter that leaves out a view is refused naming the key (exit 2)."""
+    rng = np.random.default_rng(9)
+    size = 200
+    beads = np.array([[50.3, 60.7], [140.2, 55.1], [60.6, 140.4], [100.5, 100.2], [150.4, 140.6]])
+    field = RayField(bead_camera(size))
+    seeds = []
+    for v, dia in (("cam1", 5.0), ("cam2", 9.0)):
+        base = render_beads(beads, dia, size, None, field=field, noise=False, quantize=False)
+        (tmp_path / v).mkdir()
+        for i in range(2):
+            cv2.imwrite(str(tmp_path / v / f"f{i}.png"),
+                        np.clip(np.rint(base + rng.normal(0, 1.7, base.shape)), 0, 255).astype(np.uint8))
+        seeds += [{"view": v, "marker": f"B{k}", "x_px": x + 0.8, "y_px": y - 0.6} for k, (x, y) in enumerate(beads)]
+    pd.DataFrame(seeds).to_csv(tmp_path / "seeds.csv", index=False)
+    cfg = tmp_path / "track.yaml"
+    cfg.write_text("views: {cam1: cam1, cam2: cam2}\nseeds: seeds.csv\ndiameter_px: {cam1: 5, cam2: 9}\nfigures: false\n")
+    r = CliRunner().invoke(cli, ["track", str(cfg), "-o", str(tmp_path / "out")])
+    assert r.exit_code == 0, r.output
+    j = json.loads((tmp_path / "out" / "track.json").read_text())
+    assert j["diameter_px_per_view"] == {"cam1": 5.0, "cam2": 9.0} and j["diameter_source"] == "given per view"
+    m2 = pd.read_csv(tmp_path / "out" / "markers2d.csv")
+    assert m2["found"].all() and len(m2) == 20
+    t = dict(zip([f"B{k}" for k in range(len(beads))], beads))
+    e = np.hypot(m2["x_px"] - [t[m][0] for m in m2["marker"]], m2["y_px"] - [t[m][1] for m in m2["marker"]])
+    assert e.max() < 0.3
+    cfg.write_text("views: {cam1: cam1, cam2: cam2}\nseeds: seeds.csv\ndiameter_px: {cam1: 5}\n")
+    r = CliRunner().invoke(cli, ["track", str(cfg), "-o", str(tmp_path / "bad")])
+    assert r.exit_code == 2 and "diameter_px" in r.output and not (tmp_path / "bad").exists(), r.output
+
+
 @pytest.mark.parametrize("dia,bright", [(9.0, False), (14.0, False), (9.0, True)])
 def test_cli_track_without_seeds_or_diameter_finds_large_beads(tmp_path, dia, bright):
     """No seeds and no --diameter-px, beads 9 or 14 px across (dark, or bright as in an

@@ -107,7 +107,9 @@ class TrackConfig(StrictModel):
                             "in which more seeded markers are found in the first frame (dark on a tie); without "
                             "seeds, bright only where the first frames hold at least 3 bright markers of SNR 6 "
                             "or more and twice as many as dark ones (beads are dark in raw X-ray frames)")
-    diameter_px: PositiveFloat | None = Field(None, description="marker diameter; default from the seeds, else 4")
+    diameter_px: PositiveFloat | dict[str, PositiveFloat] | None = Field(
+        None, description="marker diameter in px, or one per view ({cam1: 4, cam2: 7}: C-arms at different "
+                          "magnifications); default estimated per view from the seeds (else from the first frames)")
     fps: PositiveFloat | None = Field(None, description="frame rate where the source has no time stamps")
     channel: int | None = Field(None, ge=0, le=2, description="colour frames: use this channel (default luma)")
     loop: bool = True
@@ -121,6 +123,15 @@ class TrackConfig(StrictModel):
     detection: DetectionConfig = DetectionConfig()
     tracking: TrackingConfig = TrackingConfig()
     figures: bool = True
+
+    @field_validator("diameter_px")
+    @classmethod
+    def _diameters_per_view(cls, v, info):
+        views = info.data.get("views")
+        if isinstance(v, dict) and views is not None and set(v) != set(views):
+            raise ValueError(f"a diameter per view must give every view and only them: views "
+                             f"{', '.join(views)}; diameters for {', '.join(v)}")
+        return v
 
     @field_validator("views")
     @classmethod
@@ -702,18 +713,25 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
                                  "size): calibrate from frames of this size, or track frames of the calibrated size",
                                  path=cfg.calibration)
     seed_df = read_seeds(cfg.seeds, views, shapes) if cfg.seeds else None
+    # a diameter per view (config) is probed as no diameter: 4, 8 and 16 px
+    one_d = cfg.diameter_px if not isinstance(cfg.diameter_px, dict) else None
     polarity_note = "given"
     polarity_counts = None
     if cfg.polarity == "auto":
         if seed_df is not None:
-            pol, polarity_note, polarity_counts = _polarity_from_seeds(firsts, seed_df, cfg.diameter_px)
+            pol, polarity_note, polarity_counts = _polarity_from_seeds(firsts, seed_df, one_d)
         else:
-            pol, polarity_note, polarity_counts = _polarity_from_frames(firsts, cfg.diameter_px)
+            pol, polarity_note, polarity_counts = _polarity_from_frames(firsts, one_d)
         cfg = cfg.model_copy(update={"polarity": pol})
         log.info("track: markers %s (%s)", pol, polarity_note)
     d = cfg.diameter_px
     diameter_note = "given"
-    per_view_d = {v: d for v in views}
+    if isinstance(d, dict):
+        per_view_d = {v: float(d[v]) for v in views}
+        d = per_view_d[views[0]]
+        diameter_note = "given per view"
+    else:
+        per_view_d = {v: d for v in views}
     if d is None:
         if seed_df is not None:
             est = {v: _estimate_diameter(firsts[v], seed_df[seed_df["view"] == v], cfg.polarity)
