@@ -808,3 +808,20 @@ def test_frames_of_another_size_than_the_calibration_are_refused(base, tmp_path)
     assert exc is None and code == 2, err
     assert "calibration.json" in err and f"{w // 2}x{h // 2} px" in err and f"{w}x{h} px" in err, err
     assert not out.exists()
+
+
+def test_a_marker_seeded_in_one_view_only_is_a_warning(base, tmp_path):
+    """A marker seeded in cam1 and not in cam2: tracked in 2-D in cam1, no 3-D point -- not
+    an error, but said (single-view-markers, naming it and its view), where it used to be
+    left out of markers3d.csv without a word."""
+    df = pd.read_csv(base.synth / "seeds.csv")
+    name = str(df.loc[df["view"] == "cam2", "marker"].iloc[-1])
+    seeds = tmp_path / "seeds.csv"
+    df[~((df["view"] == "cam2") & (df["marker"] == name))].to_csv(seeds, index=False)
+    out = tmp_path / "out"
+    code, _, err, exc = _invoke(_track_args(base, seeds=seeds) + ["-o", out])
+    assert exc is None and code == 0, err
+    w = [x for x in json.loads((out / "track.json").read_text())["warnings"] if x["code"] == "single-view-markers"]
+    assert len(w) == 1 and w[0]["markers"] == {"cam1": [name]}
+    p3 = pd.read_csv(out / "markers3d.csv")
+    assert name not in set(p3["marker"]) and name in set(pd.read_csv(out / "markers2d.csv")["marker"])

@@ -910,6 +910,18 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         if not data.markers:
             raise InputError(f"no marker is tracked in both {pair[0]} and {pair[1]} (the seeds must use the same "
                              "marker names in both views)", path=cfg.seeds)
+        if seed_df is not None:
+            # a marker seeded in one of the two views has no 3-D point: said, not left out silently
+            names = {v: list(dict.fromkeys(seed_df.loc[seed_df["view"] == v, "marker"])) for v in pair}
+            alone = {v: [m for m in names[v] if m not in set(names[o])] for v, o in (pair, pair[::-1])}
+            alone = {v: ms for v, ms in alone.items() if ms}
+            if alone:
+                from ..quality import warning
+                warnings.append(warning(
+                    "single-view-markers",
+                    "track: markers seeded in only one of the calibrated views are tracked in 2-D there with no "
+                    "3-D point: " + "; ".join(f"{', '.join(ms)} ({v} only)" for v, ms in alone.items())
+                    + " (seed each in both views under the same name to triangulate it)", log, markers=alone))
         loop_dict, fit, _ = close_stereo_loop(data, loop=cfg.loop, max_offset_s=cfg.max_offset_s)
         from ..imaging.track_effects import orientation_check
         turned = orientation_check(data, {v: info[v]["frame_shape_px"] for v in pair})
