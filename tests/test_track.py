@@ -955,6 +955,25 @@ def test_cli_track_views_at_different_magnifications_get_their_own_diameter(tmp_
     assert e.max() < 0.3
 
 
+def test_cli_track_one_marker_seeded_twice_is_named(tmp_path):
+    """The real X-ray frame's TP seeded a second time, 0.3 px off, as "TP2": the run ends as
+    before (one of the two "was not found in any frame": the bead goes to the other), but a
+    seeds-together warning comes first and the error says why."""
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    (frames / "f.jpg").write_bytes((XRAY / "sample_frame.jpg").read_bytes())
+    s = pd.read_csv(_xray_seeds(tmp_path))
+    tp = s[s["marker"] == "TP"].copy()
+    tp["marker"], tp["x_px"] = "TP2", tp["x_px"] + 0.3
+    pd.concat([s, tp]).to_csv(tmp_path / "seeds2.csv", index=False)
+    r = CliRunner().invoke(cli, ["track", "--view", f"cam1={frames}", "--seeds", str(tmp_path / "seeds2.csv"),
+                                 "--diameter-px", "4", "-o", str(tmp_path / "out")])
+    assert r.exit_code == 1, r.output
+    assert "seeds within half a marker diameter" in r.output and "TP and TP2 in cam1, 0.3 px" in r.output
+    assert ("within half a diameter of the seed of 'TP': one marker seeded twice" in r.output
+            or "within half a diameter of the seed of 'TP2': one marker seeded twice" in r.output), r.output
+
+
 def test_config_gives_a_diameter_per_view(tmp_path):
     """``diameter_px: {cam1: 5, cam2: 9}`` in a track config: each view tracked at its own
     diameter (track.json ``diameter_px_per_view``, source "given per view"), every bead within

@@ -276,6 +276,22 @@ def _first_frames(views: dict, channel) -> dict:
     return out
 
 
+def _seeds_together(seeds: pd.DataFrame, diameters: dict) -> list[tuple]:
+    """Pairs of seeds of one view within half a marker diameter of each other, as
+    ``(view, marker, marker, distance_px, limit_px)``: one marker clicked twice under two
+    names, or two markers whose images overlap in that view's first frame."""
+    out = []
+    for v, g in seeds.groupby("view", sort=False):
+        xy = g[["x_px", "y_px"]].to_numpy(float)
+        if len(xy) < 2:
+            continue
+        lim = 0.5 * float(diameters.get(v) or 4.0)
+        dd = np.hypot(*(xy[:, None, :] - xy[None, :, :]).transpose(2, 0, 1))
+        for i, j in zip(*np.nonzero(np.triu(dd < lim, 1))):
+            out.append((v, str(g["marker"].iloc[i]), str(g["marker"].iloc[j]), float(dd[i, j]), lim))
+    return out
+
+
 def _read_calibration(path, views: Sequence[str]):
     from ..imaging.triangulate import views_from_calibration
     try:
@@ -742,6 +758,12 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         log.info("track: marker diameter %s (%s)", ", ".join(f"{v} {x:.2f} px" for v, x in per_view_d.items())
                  if len(set(per_view_d.values())) > 1 else f"{d:.2f} px", diameter_note)
     del firsts
+    together = _seeds_together(seed_df, per_view_d) if seed_df is not None else []
+    if together:
+        # said before the run (a marker seeded twice ends "not found in any frame" after it)
+        log.warning("track: seeds within half a marker diameter of each other (one marker seeded twice under two "
+                    "names, or two markers overlapping in the first frame): %s",
+                    "; ".join(f"{a} and {b} in {v}, {dist:.2g} px" for v, a, b, dist, _ in together))
     det = DetectionSettings(k_sigma=cfg.detection.k_sigma, window_k_sigma=cfg.detection.window_k_sigma,
                             min_snr=cfg.detection.min_snr, method=cfg.detection.method,
                             max_elongation=cfg.detection.max_elongation, blur_px=cfg.detection.blur_px,
@@ -773,9 +795,12 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         found_any = table.groupby(["view", "marker"])["found"].any()
         for v, m, x, y in seed_df[["view", "marker", "x_px", "y_px"]].itertuples(index=False):
             if not found_any.get((v, m), False):
+                twin = [b if a == m else a for vv, a, b, _, _ in together if vv == v and m in (a, b)]
+                hint = (f"; its seed lies within half a diameter of the seed of {twin[0]!r}: one marker seeded "
+                        "twice under two names?" if twin else "")
                 raise ProcessingError(f"marker {m!r} was not found in any of the {info[v]['n_frames']} frames of "
                                       f"view {v!r} (seeded at ({x:g}, {y:g}) px): check the seed, --polarity and "
-                                      f"--diameter-px", path=cfg.seeds)
+                                      f"--diameter-px{hint}", path=cfg.seeds)
     if table.empty or not table["found"].any():
         raise ProcessingError("no marker was found in any frame (check --polarity and --diameter-px)",
                               path=next(iter(cfg.views.values())))
@@ -785,6 +810,12 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     fit = None
     cross_view = None
     warnings: list[dict] = []
+    if together:        # (logged before the run)
+        warnings.append({"code": "seeds-together",
+                         "message": "track: seeds within half a marker diameter of each other (one marker seeded "
+                                    "twice under two names, or two markers overlapping in the first frame): "
+                                    + "; ".join(f"{a} and {b} in {v}, {dist:.2g} px" for v, a, b, dist, _ in together),
+                         "pairs": [{"view": v, "markers": [a, b], "distance_px": dist} for v, a, b, dist, _ in together]})
     later = seed_df.attrs.get("later") if seed_df is not None else None
     if later:
         from ..quality import warning
