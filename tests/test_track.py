@@ -399,6 +399,12 @@ def test_cli_track_real_frame(tmp_path):
     assert not (out / "markers3d.csv").exists()
     # the frame is a JPEG: its SNR and sd_px come from noise the codec partly removed
     assert [(w["code"], w["views"]) for w in j["warnings"]] == [("lossy-frames", {"cam1": "JPEG files"})]
+    assert j["warnings"][0]["seeds"] and "give seeds" not in j["warnings"][0]["message"]
+    # without seeds the warning adds that the codec's artefacts start tracks of their own
+    r = CliRunner().invoke(cli, ["track", "--view", f"cam1={frames}", "-o", str(tmp_path / "auto")])
+    assert r.exit_code == 0, r.output
+    w = [w for w in json.loads((tmp_path / "auto" / "track.json").read_text())["warnings"] if w["code"] == "lossy-frames"]
+    assert len(w) == 1 and not w[0]["seeds"] and w[0]["message"].endswith("give seeds")
 
 
 def test_cli_track_polarity_from_the_seeds(tmp_path):
