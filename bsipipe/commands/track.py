@@ -413,6 +413,12 @@ def _polarity_from_frames(firsts: dict, diameter_px: float | None) -> tuple[str,
                  f"frames{'' if d == 4.0 or diameter_px else f' at {d:g} px'}"), n
 
 
+def _diameter_from_sigmas(sigmas) -> float:
+    """Marker diameter from fitted Gaussian sigmas: 2.5 times their median (a bead of
+    diameter d blurred by sigma_b gives sigma ~ sqrt((d/4)^2 + sigma_b^2)), clipped to 2..40 px."""
+    return float(np.clip(2.5 * np.median(sigmas), 2.0, 40.0))
+
+
 def _view_diameters(est: dict, views) -> tuple[float, dict, str]:
     """The diameter (the first estimated view's), one per view and the note, from each view's
     estimate ``est`` (view -> (diameter, note)).  Where the estimates differ by more than 25 %
@@ -450,16 +456,15 @@ def _diameter_without_seeds(first: np.ndarray, polarity: str) -> tuple[float, st
     for d0 in (8.0, 16.0):
         n, sig = strong(d0)
         if n >= 3:
-            d = float(np.clip(2.5 * np.median(sig), 2.0, 40.0))
+            d = _diameter_from_sigmas(sig)
             return d, (f"estimated without seeds: 4 px found {n4} markers of SNR 6 or more in the first frame, "
                        f"{d0:g} px {n}; 2.5 x their median fitted sigma")
     return 4.0, "default 4 px (no --diameter-px, no seeds; no size tried finds 3 markers of SNR 6 or more)"
 
 
 def _estimate_diameter(first: np.ndarray, seeds: pd.DataFrame, polarity: str) -> tuple[float, str]:
-    """Marker diameter from the seeds of one view, and a note: 2.5 times the median fitted
-    Gaussian sigma of the seeded markers in the first frame (a bead of diameter d blurred by
-    sigma_b gives sigma ~ sqrt((d/4)^2 + sigma_b^2)), clipped to 2..40 px.
+    """Marker diameter from the seeds of one view, and a note: from the fitted Gaussian sigmas
+    of the seeded markers in the first frame (:func:`_diameter_from_sigmas`).
 
     Markers of two sizes (the deep 0.5 mm beads and the 1 mm references) are found at one
     diameter near the larger size, not near the smaller: where seeds find no marker at the
@@ -483,7 +488,7 @@ def _estimate_diameter(first: np.ndarray, seeds: pd.DataFrame, polarity: str) ->
             break
     if not ok.any():
         return 4.0, "default: no seeded marker measured in the first frame"
-    d = float(np.clip(2.5 * np.median(s[ok]), 2.0, 40.0))
+    d = _diameter_from_sigmas(s[ok])
     note = f"estimated from the seeds ({ok.sum()} of {len(xy)}; 2.5 x median fitted sigma)"
     hit, _ = found_at(d, xy)
     if hit.all():
@@ -497,7 +502,7 @@ def _estimate_diameter(first: np.ndarray, seeds: pd.DataFrame, polarity: str) ->
         if len(miss) == 0:
             break
     if sig:
-        d2 = float(np.clip(2.5 * np.median(sig), 2.0, 40.0))
+        d2 = _diameter_from_sigmas(sig)
         hit2, _ = found_at(d2, xy)
         # a second size of marker, not one stray find: at least half the seeds missed at d
         # found (a lossy video's faint beads, lost at every size, must not make one blur or
@@ -759,11 +764,16 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
                  if len(set(per_view_d.values())) > 1 else f"{d:.2f} px", diameter_note)
     del firsts
     together = _seeds_together(seed_df, per_view_d) if seed_df is not None else []
+    together_warning = None
     if together:
-        # said before the run (a marker seeded twice ends "not found in any frame" after it)
-        log.warning("track: seeds within half a marker diameter of each other (one marker seeded twice under two "
-                    "names, or two markers overlapping in the first frame): %s",
-                    "; ".join(f"{a} and {b} in {v}, {dist:.2g} px" for v, a, b, dist, _ in together))
+        # said (logged) before the run: a marker seeded twice ends "not found in any frame" after it
+        from ..quality import warning
+        together_warning = warning(
+            "seeds-together",
+            "track: seeds within half a marker diameter of each other (one marker seeded twice under two names, "
+            "or two markers overlapping in the first frame): "
+            + "; ".join(f"{a} and {b} in {v}, {dist:.2g} px" for v, a, b, dist, _ in together), log,
+            pairs=[{"view": v, "markers": [a, b], "distance_px": dist} for v, a, b, dist, _ in together])
     det = DetectionSettings(k_sigma=cfg.detection.k_sigma, window_k_sigma=cfg.detection.window_k_sigma,
                             min_snr=cfg.detection.min_snr, method=cfg.detection.method,
                             max_elongation=cfg.detection.max_elongation, blur_px=cfg.detection.blur_px,
@@ -810,12 +820,8 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     fit = None
     cross_view = None
     warnings: list[dict] = []
-    if together:        # (logged before the run)
-        warnings.append({"code": "seeds-together",
-                         "message": "track: seeds within half a marker diameter of each other (one marker seeded "
-                                    "twice under two names, or two markers overlapping in the first frame): "
-                                    + "; ".join(f"{a} and {b} in {v}, {dist:.2g} px" for v, a, b, dist, _ in together),
-                         "pairs": [{"view": v, "markers": [a, b], "distance_px": dist} for v, a, b, dist, _ in together]})
+    if together_warning is not None:
+        warnings.append(together_warning)
     later = seed_df.attrs.get("later") if seed_df is not None else None
     if later:
         from ..quality import warning

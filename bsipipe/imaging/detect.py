@@ -1629,11 +1629,11 @@ def _grid_pixels(img: np.ndarray, g: int) -> tuple[np.ndarray, np.ndarray, np.nd
     # a fill region (a constant value outside the field, a saturated region mapped to a grey)
     # carries no noise either: where more than a fifth of the unclipped grid pixels sit in
     # constant 5 x 5 patches, those are left out too.  Noisy frames hold few such patches
-    # (0-13 % in the real frames of the tests), so they keep every pixel.  (A test for any
-    # patch without noise, a smooth ramp as well, would take 60 % of a real microscopy frame
-    # of low noise for one: not used.)
-    # (a pixel of a constant 5 x 5 patch has a zero high-pass: where under a fifth of the
-    # unclipped high-pass samples are zero, no patch test is needed -- the usual noisy frame)
+    # (0-13 % in the real frames of the tests), so they keep every pixel.  A pixel of such a
+    # patch has a zero high-pass, so the patch test runs only where more than a fifth of the
+    # high-pass samples are zero (never on a usual noisy frame).  (A test for any patch
+    # without noise, a smooth ramp as well, would take 60 % of a real microscopy frame of low
+    # noise for one: not used.)
     n1 = int(np.count_nonzero(u1))
     if n1 and 5 * int(np.count_nonzero((hp == 0) & u1)) > n1:
         for u, ys, xs in ((u0, y0, x0), (u1, np.arange(1, h - 1, g)[:ny], np.arange(1, w - 1, g)[:nx])):
