@@ -415,7 +415,7 @@ def bench_command(src: Path, quick: bool, say=print) -> tuple[list[Row], dict]:
         why = (f"track exited {cmd.returncode}: {cmd.tail(3)}" if not cmd.ok else
                f"decode exited {dec.returncode}" if not dec.ok else "")
         note_w = (f"2 views x {n} frames, the faster of {1 if quick else 2} interleaved runs each; the command "
-                  f"decodes on reader threads (cores + 1, at most 4) while it tracks, so it takes about the longer of "
+                  f"decodes on reader threads (one per core, at most 4) while it tracks, so it takes about the longer of "
                   f"decoding (spread over the cores) and tracking, plus its start-up; the peer decodes on one thread; decode child peak {fmt_bytes(dec.peak_rss_bytes)}" if ok_both else why)
         note_c = (f"CPU time (user + system) of the same runs, the smaller of each: what the command costs in all, "
                   f"whatever the cores; decoding is {100 * cpu['decode'] / cpu['command']:.0f} % of it at best"
