@@ -231,8 +231,9 @@ def synth(config, out) -> None:
 @click.option("--calibration", type=click.Path(dir_okay=False), help="calibration.json (stereo: 3-D and the loop).")
 @click.option("--polarity", type=click.Choice(["dark", "bright", "auto"]),
               help="Markers darker or brighter; auto (default): from the seeds, else from the first frames.")
-@click.option("--diameter-px", type=click.FloatRange(min=0, min_open=True),
-              help="Marker diameter on screen (default: from the seeds, else 4).")
+@click.option("--diameter-px", "diameter_px", multiple=True, metavar="D|NAME=D",
+              help="Marker diameter on screen in px, or NAME=D for one view (repeat for each view: C-arms at "
+                   "different magnifications); default: estimated per view from the seeds, else the first frames.")
 @click.option("--seeds", type=click.Path(dir_okay=False),
               help="seeds.csv view,marker,x_px,y_px in frame 0 (or an XMALab 2-D CSV); default: automatic.")
 @click.option("--fps", type=click.FloatRange(min=0, min_open=True), help="Frame rate where frames have no time stamps.")

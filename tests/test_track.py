@@ -1011,6 +1011,22 @@ def test_config_gives_a_diameter_per_view(tmp_path):
     cfg.write_text("views: {cam1: cam1, cam2: cam2}\nseeds: seeds.csv\ndiameter_px: {cam1: 5}\n")
     r = CliRunner().invoke(cli, ["track", str(cfg), "-o", str(tmp_path / "bad")])
     assert r.exit_code == 2 and "diameter_px" in r.output and not (tmp_path / "bad").exists(), r.output
+    # the same on the command line: --diameter-px NAME=D per view, the same tracks
+    args = ["track", "--view", f"cam1={tmp_path / 'cam1'}", "--view", f"cam2={tmp_path / 'cam2'}", "--seeds",
+            str(tmp_path / "seeds.csv")]
+    r = CliRunner().invoke(cli, [*args, "--diameter-px", "cam1=5", "--diameter-px", "cam2=9", "-o",
+                                 str(tmp_path / "cli")])
+    assert r.exit_code == 0, r.output
+    j = json.loads((tmp_path / "cli" / "track.json").read_text())
+    assert j["diameter_px_per_view"] == {"cam1": 5.0, "cam2": 9.0} and j["diameter_source"] == "given per view"
+    pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "cli" / "markers2d.csv"), m2)
+    # bad values: exit 2 naming the option, nothing written
+    for bad, word in ((["cam1=5"], "every view"), (["cam1=5", "cam1=6"], "given twice"), (["4", "cam2=9"], "not both"),
+                      (["cam1=-1", "cam2=9"], "positive number"),
+                      (["wide"], "positive number"), (["=5", "cam2=9"], "NAME=D")):
+        out = tmp_path / f"bad{len(word)}{len(bad)}"
+        r = CliRunner().invoke(cli, [*args, *[a for b in bad for a in ("--diameter-px", b)], "-o", str(out)])
+        assert r.exit_code == 2 and word in r.output and "diameter" in r.output and not out.exists(), (bad, r.output)
 
 
 @pytest.mark.parametrize("dia,bright", [(9.0, False), (14.0, False), (9.0, True)])

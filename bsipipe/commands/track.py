@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import sys
 from pathlib import Path
@@ -157,6 +158,41 @@ def _parse_views(values: Sequence[str]) -> dict[str, str]:
     return out
 
 
+def _parse_diameters(values: Sequence[str]) -> float | dict[str, float] | None:
+    """``--diameter-px``: one ``D`` for every view (given more than once, the last counts), or
+    ``NAME=D`` per view (repeated); None when not given.  A value that is not a positive number,
+    a view given twice, or both forms mixed is an error naming the option."""
+    if not values:
+        return None
+
+    def number(text: str, given: str) -> float:
+        try:
+            x = float(text)
+        except ValueError:
+            x = math.nan
+        if not (math.isfinite(x) and x > 0):
+            raise InputError(f"--diameter-px {given!r}: expected a positive number of px (D, or NAME=D for one "
+                             "view)", key="diameter_px")
+        return x
+
+    named = ["=" in s for s in values]
+    if not any(named):
+        # repeated, the last one counts (as for any single-valued option)
+        return number(values[-1].strip(), values[-1])
+    if not all(named):
+        raise InputError("--diameter-px: give one D for every view, or NAME=D for each view, not both",
+                         key="diameter_px")
+    out: dict[str, float] = {}
+    for s in values:
+        k, x = (a.strip() for a in s.split("=", 1))
+        if not k:
+            raise InputError(f"--diameter-px {s!r}: expected NAME=D", key="diameter_px")
+        if k in out:
+            raise InputError(f"--diameter-px {k!r} given twice", key="diameter_px")
+        out[k] = number(x, s)
+    return out
+
+
 def build_config(config_path=None, *, view=(), calibration=None, polarity=None, diameter_px=None, seeds=None,
                  fps=None, loop=None, **extra) -> TrackConfig:
     """The validated config: the YAML file (paths relative to it), command-line options win."""
@@ -169,6 +205,8 @@ def build_config(config_path=None, *, view=(), calibration=None, polarity=None, 
         base = Path(config_path).resolve().parent
     if view:
         data["views"] = _parse_views(view)
+    if isinstance(diameter_px, (tuple, list)):           # the command line's --diameter-px values
+        diameter_px = _parse_diameters(diameter_px)
     for k, v in (("calibration", calibration), ("polarity", polarity), ("diameter_px", diameter_px),
                  ("seeds", seeds), ("fps", fps), ("loop", loop)):
         if v is not None:
