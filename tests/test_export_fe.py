@@ -411,3 +411,38 @@ def test_depth_check_allows_the_contacts_own_uncertainty(tmp_path):
     assert chk["passed"] and err > chk["depth_tol_mm"]              # outside the bare tolerance ...
     assert err <= 2.0 * chk["contact_sd_mm"]                         # ... inside the contact's own uncertainty
     assert chk["tolerance"] == pytest.approx(chk["depth_tol_mm"] + 2.0 * chk["contact_sd_mm"])
+
+
+def test_clock_offset_mirror_of_a_ramp_unload_log_is_told_apart_by_the_brain():
+    """A ramp-unload log (0.2 mm/s up for 26.5 s, then down) and an X-ray record of 8 frames
+    every 2 s that starts 1 s before the log: the unloading mirrors the ramp, so the motion
+    fits as well 26 s later with the direction of travel reversed (the tiny study's twin had
+    its indentor placed 12 mm off by this).  The implanted markers ahead of the indentor pick
+    the true offset; without them the fit says it is ambiguous; given, the offset is used."""
+    from bsipipe.fe.export import LogRecord, fit_alignment
+    rng = np.random.default_rng(4)
+    t_log = np.arange(0.0, 53.0 + 1e-9, 0.1)
+    travel = 0.2 * np.minimum(t_log, 53.0 - t_log)
+    log = LogRecord(t_log, travel, np.zeros_like(t_log))
+    true_off = 1.0
+    t_x = np.arange(8) * 2.0
+    axis = np.array([0.2, -0.3, 0.93])
+    axis /= np.linalg.norm(axis)
+    rest = np.array([10.0, -4.0, 30.0])
+    e = np.interp(t_x - true_off, t_log, travel)
+    C = rest + e[:, None] * axis + rng.normal(0, 0.004, (len(t_x), 3))
+    brain = rest + 15.0 * axis + rng.normal(0, 3.0, (6, 3))          # implanted markers, ahead
+    al = fit_alignment(t_x, C, log, ahead_mm=brain)
+    assert abs(al.clock_offset_s - true_off) < 0.3 and al.axis @ axis > 0.999
+    assert len(al.alternatives) == 1 and abs(al.alternatives[0]["clock_offset_s"] - (true_off - 27.0)) < 1.0
+    assert al.alternatives[0]["brain_ahead_mm"] < 0 and al.choice.startswith("the only one")
+    blind = fit_alignment(t_x, C, log)
+    assert blind.choice.startswith("ambiguous") and len(blind.alternatives) == 1
+    given = fit_alignment(t_x, C, log, clock_offset_s=true_off)
+    assert given.alternatives == () and given.choice is None and given.axis @ axis > 0.999
+    # a record that sees the start of the ramp and its turn is not ambiguous
+    t_long = np.arange(30) * 2.0
+    e = np.interp(t_long - true_off, t_log, travel)
+    C = rest + e[:, None] * axis + rng.normal(0, 0.004, (len(t_long), 3))
+    one = fit_alignment(t_long, C, log, ahead_mm=brain)
+    assert one.alternatives == () and one.choice is None and abs(one.clock_offset_s - true_off) < 0.1

@@ -237,6 +237,8 @@ def _manifest(h, cfg, files, sources, reg, machine_log, u) -> dict:
             "clock": "X-ray time = log time + clock_offset_s; FE time = log time - contact log time",
             "xray_to_log_travel_ratio": al.travel_ratio if al else None,
             "alignment_rms_residual_mm": al.rms_residual_mm if al else None,
+            "clock_offset_alternatives": list(al.alternatives) if al else [],
+            "clock_offset_choice": al.choice if al else None,
             "difference": {
                 "what": "|tip from the X-ray - tip from the log| at the X-ray frames, CT frame",
                 "during_contact": h.difference_contact.to_dict() if h.difference_contact else None,

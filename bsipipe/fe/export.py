@@ -181,6 +181,12 @@ class Alignment:
     travel_ratio: float
     rms_residual_mm: float
     n_frames: int
+    #: other clock offsets that fit the X-ray motion as well (within 2 noise sd of chi^2), e.g. a
+    #: record that sees only a stretch of a ramp-unload log that the unloading mirrors: each
+    #: ``{"clock_offset_s", "rms_residual_mm", "brain_ahead_mm"}``; empty when the fit is unique
+    alternatives: tuple = ()
+    #: how the offset was chosen among equally good ones (None when it was unique)
+    choice: str | None = None
 
 
 def _travel_at(t_xray, offset, log: LogRecord) -> np.ndarray:
@@ -201,12 +207,35 @@ def _regress(P: np.ndarray, e: np.ndarray, axis: np.ndarray | None):
     return a, C0, float(np.sum(r * r))
 
 
+def _local_minima(costs: np.ndarray, within: float) -> list[int]:
+    """Indices of the grid's local minima (one per flat run) whose cost is within ``within`` of
+    the lowest."""
+    best = float(np.min(costs))
+    out, k, n = [], 0, len(costs)
+    while k < n:
+        j = k
+        while j + 1 < n and costs[j + 1] == costs[k]:
+            j += 1
+        left = costs[k - 1] if k > 0 else np.inf
+        right = costs[j + 1] if j + 1 < n else np.inf
+        if costs[k] <= left and costs[k] <= right and costs[k] <= best + within:
+            out.append((k + j) // 2)
+        k = j + 1
+    return out
+
+
 def fit_alignment(t_xray, centroids_mm, log: LogRecord, *, clock_offset_s: float | None = None,
-                  axis=None) -> Alignment:
+                  axis=None, ahead_mm=None) -> Alignment:
     """Fit the clock offset, the direction of indentation and the rest position (module
     docstring) to the X-ray centroids ``centroids_mm`` (F, 3) at ``t_xray`` (F,).
 
     ``axis`` (CT frame, any length) fixes the direction; ``clock_offset_s`` the offset.
+    ``ahead_mm`` (k, 3): points that lie ahead of the indentor along its direction of travel
+    (the implanted markers, inside the brain it presses).  Where several offsets fit the
+    motion equally well (a ramp and the unloading that mirrors it, seen over a stretch that
+    holds no asymmetric part of the log), the direction of indentation flips between them;
+    the one that has ``ahead_mm`` in front of the indentor is taken (``choice``), and the
+    others are kept in ``alternatives``.
     """
     t = np.asarray(t_xray, float)
     P = np.asarray(centroids_mm, float)
@@ -225,13 +254,42 @@ def fit_alignment(t_xray, centroids_mm, log: LogRecord, *, clock_offset_s: float
         h = max(min(dt_log, dt_x) / 4.0, (hi - lo) / 4000.0)
         grid = np.arange(lo, hi + h, h)
         costs = np.array([sse(o) for o in grid])
-        best = float(grid[int(np.argmin(costs))])
-        res = minimize_scalar(sse, bounds=(best - h, best + h), method="bounded",
-                              options={"xatol": 1e-6 * max(h, 1e-9)})
-        offset = float(res.x) if res.fun <= sse(best) else best
+
+        def refine(g0: float) -> tuple[float, float]:
+            res = minimize_scalar(sse, bounds=(g0 - h, g0 + h), method="bounded",
+                                  options={"xatol": 1e-6 * max(h, 1e-9)})
+            return (float(res.x), float(res.fun)) if res.fun <= sse(g0) else (g0, sse(g0))
+
+        # every minimum as good as the best within 2 noise sd of chi^2 (noise from the best fit:
+        # 3F residuals, 7 parameters), each refined
+        s2 = float(np.min(costs)) / max(3 * len(t) - 7, 1)
+        cands = sorted((refine(float(grid[k])) for k in _local_minima(costs, 4.0 * s2)), key=lambda c: c[1])
+        cands = [c for c in cands if c[1] <= cands[0][1] + 4.0 * s2]
+        offset = cands[0][0]
         source = "fitted to the X-ray motion"
+        if fixed_axis is None and len(cands) > 1:
+            def ahead(off: float) -> float:
+                if ahead_mm is None or not len(ahead_mm):
+                    return float("nan")
+                a, C0, _ = _regress(P, _travel_at(t, off, log), None)
+                n = np.linalg.norm(a)
+                return float(np.median((np.asarray(ahead_mm, float) - C0) @ (a / n))) if n > 0 else float("nan")
+            scored = [(o, f, ahead(o)) for o, f in cands]
+            front = [c for c in scored if c[2] > 0]
+            if len(front) == 1:
+                offset = front[0][0]
+                choice = ("the only one of the offsets that fit equally well with the implanted markers ahead of "
+                          "the indentor (the others reverse its direction of travel)")
+            else:
+                choice = ("ambiguous: offsets that fit equally well, the lowest residual taken; give "
+                          "log.clock_offset_s (the markers ahead of the indentor do not tell them apart)")
+            alternatives = tuple({"clock_offset_s": o, "rms_residual_mm": float(np.sqrt(f / len(t))),
+                                  "brain_ahead_mm": b} for o, f, b in scored if o != offset)
+        else:
+            choice, alternatives = None, ()
     else:
         offset, source = float(clock_offset_s), "given (config log.clock_offset_s)"
+        choice, alternatives = None, ()
     e = _travel_at(t, offset, log)
     if float(np.ptp(e)) <= 0:
         raise ValueError("the log does not move while the X-ray frames are recorded (check the clock offset)")
@@ -246,7 +304,7 @@ def fit_alignment(t_xray, centroids_mm, log: LogRecord, *, clock_offset_s: float
         axis_source = "given (config indentor.axis_xray / pose_xray.axis, rotated into the CT frame)"
     _, C0, s = _regress(P, e, unit)
     return Alignment(offset, source, unit, axis_source, C0, float(a_free @ unit),
-                     float(np.sqrt(s / len(t))), int(len(t)))
+                     float(np.sqrt(s / len(t))), int(len(t)), alternatives, choice)
 
 
 @dataclass(frozen=True)
@@ -574,10 +632,27 @@ def build_handoff(cfg, *, fit: dict, transform, markers_ct: pd.DataFrame, log: L
         if not np.all(np.isfinite(t_x)):
             raise HandoffError("the X-ray table has no time_s for the indentor's frames", source=src)
         axis_ct = None if ind.axis_xray is None else transform.R @ np.asarray(ind.axis_xray, float)
+        # the implanted markers lie in the brain, ahead of the indentor: they tell a fitted
+        # direction of indentation from its reverse where the motion alone cannot
+        brain = markers_ct[~markers_ct["marker"].isin(names)]
+        if "role" in brain.columns:
+            brain = brain[brain["role"].astype(str) == "marker"]
+        ahead = brain[["x_mm", "y_mm", "z_mm"]].dropna().to_numpy(float)
         try:
-            alignment = fit_alignment(t_x, C, log, clock_offset_s=cfg.log.clock_offset_s, axis=axis_ct)
+            alignment = fit_alignment(t_x, C, log, clock_offset_s=cfg.log.clock_offset_s, axis=axis_ct,
+                                      ahead_mm=ahead)
         except ValueError as e:
             raise HandoffError(f"cannot tie the X-ray indentor to the log: {e}", key="log.clock_offset_s") from None
+        if alignment.alternatives:
+            alt = ", ".join(f"{a['clock_offset_s']:+.3f} s" for a in alignment.alternatives)
+            msg = (f"the X-ray motion of the indentor fits the log equally well at clock offsets "
+                   f"{alignment.clock_offset_s:+.3f} s and {alt} (its direction reversed between them)")
+            if alignment.choice and alignment.choice.startswith("ambiguous"):
+                warnings.append(msg + ": the lowest residual is taken, but the X-ray record alone cannot tell "
+                                      "them apart; give log.clock_offset_s")
+            else:
+                log_msg = msg + f": {alignment.clock_offset_s:+.3f} s taken, {alignment.choice}"
+                warnings.append(log_msg)
         axis = alignment.axis
         offset = alignment.clock_offset_s
         offset_source = alignment.clock_offset_source
