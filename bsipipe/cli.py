@@ -243,7 +243,10 @@ def synth(config, out) -> None:
               help="trackpy: detect exactly as trackpy.locate(diameter, invert=dark) does, to reproduce a trackpy "
                    "user's features (odd --diameter-px, no --seeds; implies --method centroid).")
 @click.option("--minmass", type=click.FloatRange(min=0), help="With --parity trackpy: trackpy's minmass (default 0).")
-@click.option("--roi", type=click.Choice(["auto", "none"]), help="auto: the intensifier's circular field (default).")
+@click.option("--roi", "roi", multiple=True, metavar="REGION|NAME=REGION",
+              help="Where markers are looked for: auto (the intensifier's circular field, default), none (the "
+                   "whole frame), a circle X,Y,R in px, or a mask image (its non-zero pixels); NAME=REGION for "
+                   "one view (repeat; views not named keep auto).")
 @click.option("--channel", type=click.IntRange(0, 2), help="Colour frames: use this channel (0 R, 1 G, 2 B).")
 @click.option("--lowpass-hz", type=click.FloatRange(min=0, min_open=True),
               help="Also write zero-phase low-passed 3-D trajectories (*_filt columns).")

@@ -1057,3 +1057,136 @@ def test_cli_track_without_seeds_or_diameter_finds_large_beads(tmp_path, dia, br
     m2 = pd.read_csv(out / "markers2d.csv")
     assert m2["marker"].nunique() == 5 and m2["found"].all() and len(m2) == 15
     assert cKDTree(beads).query(m2[["x_px", "y_px"]].to_numpy())[0].max() < 0.3
+
+
+def _roi_views(tmp_path, n_frames=12, moving=None, seed=11):
+    """Two views of five dark beads (5 px) on 200 px frames, pixel noise 1.7; ``moving``: a
+    sixth bead's x per frame (y 100), in both views.  Returns the folders and the beads."""
+    rng = np.random.default_rng(seed)
+    size = 200
+    beads = np.array([[40.3, 40.7], [160.2, 45.1], [60.6, 150.4], [100.5, 60.2], [150.4, 160.6]])
+    field = RayField(bead_camera(size))
+    dirs = {}
+    for v in ("cam1", "cam2"):
+        d = tmp_path / v
+        d.mkdir()
+        for i in range(n_frames):
+            b = beads if moving is None else np.vstack([beads, [[moving[i], 100.3]]])
+            img = render_beads(b, 5.0, size, None, field=field, noise=False, quantize=False)
+            cv2.imwrite(str(d / f"f{i:02d}.png"), np.clip(np.rint(img + rng.normal(0, 1.7, img.shape)), 0, 255)
+                        .astype(np.uint8))
+        dirs[v] = d
+    return dirs, beads
+
+
+def test_cli_track_given_region_of_interest(tmp_path):
+    """``--roi``: a circle X,Y,R, a mask image, one per view (NAME=REGION), or the same in a
+    config (``detection.roi``, a mask path relative to it): without seeds only the beads
+    inside are tracked (5 with the automatic field), and track.json says the region was
+    given."""
+    dirs, beads = _roi_views(tmp_path, n_frames=4)
+    base = ["-q", "track", "--view", f"cam1={dirs['cam1']}", "--view", f"cam2={dirs['cam2']}", "--diameter-px", "5",
+            "--fps", "2"]
+
+    def run(*extra, name):
+        out = tmp_path / name
+        r = CliRunner().invoke(cli, [*base, *extra, "-o", str(out)])
+        assert r.exit_code == 0, r.output
+        t = pd.read_csv(out / "markers2d.csv")
+        t = t[t["found"].astype(bool)]
+        return {v: np.unique(np.rint(g[["x_px", "y_px"]].to_numpy() / 10).astype(int), axis=0).tolist()
+                for v, g in t.groupby("view")}, json.loads((out / "track.json").read_text())
+
+    def near(found, pts):
+        return sorted(np.rint(np.asarray(pts) / 10).astype(int).tolist()) == sorted(found)
+
+    auto, _ = run(name="auto")
+    assert near(auto["cam1"], beads) and near(auto["cam2"], beads)
+    # a circle around three of the beads (centre 70, 90, radius 70: beads 0, 2 and 3)
+    circ, j = run("--roi", "70,90,70", name="circle")
+    inside = beads[np.hypot(beads[:, 0] - 70, beads[:, 1] - 90) <= 70]
+    assert len(inside) == 3 and near(circ["cam1"], inside) and near(circ["cam2"], inside)
+    assert j["views"]["cam1"]["field_of_view"] == {"found": True, "centre_px": [70.0, 90.0], "radius_px": 70.0,
+                                                    "shape": [200, 200], "given": True}
+    # a mask image (the left half) for cam2 only: cam1 keeps the automatic field
+    m = np.zeros((200, 200), np.uint8)
+    m[:, :110] = 255
+    cv2.imwrite(str(tmp_path / "left.png"), m)
+    per, j = run("--roi", f"cam2={tmp_path / 'left.png'}", name="mask")
+    assert near(per["cam1"], beads) and near(per["cam2"], beads[beads[:, 0] < 110])
+    assert j["views"]["cam2"]["field_of_view"]["region_px"] == 200 * 110
+    assert "given" not in j["views"]["cam1"]["field_of_view"]
+    # the same in a config: per view, the mask's path relative to the config's folder
+    (tmp_path / "cfg").mkdir()
+    cv2.imwrite(str(tmp_path / "cfg" / "left.png"), m)
+    cfg = tmp_path / "cfg" / "track.yaml"
+    cfg.write_text(f"views: {{cam1: {dirs['cam1']}, cam2: {dirs['cam2']}}}\ndiameter_px: 5\nfps: 2\nfigures: false\n"
+                   "detection: {roi: {cam1: {centre_px: [70, 90], radius_px: 70}, cam2: left.png}}\n")
+    r = CliRunner().invoke(cli, ["-q", "track", str(cfg), "-o", str(tmp_path / "cfgout")])
+    assert r.exit_code == 0, r.output
+    t = pd.read_csv(tmp_path / "cfgout" / "markers2d.csv")
+    t = t[t["found"].astype(bool)]
+    for v, want in (("cam1", inside), ("cam2", beads[beads[:, 0] < 110])):
+        g = t[t["view"] == v]
+        assert near(np.unique(np.rint(g[["x_px", "y_px"]].to_numpy() / 10).astype(int), axis=0).tolist(), want)
+
+
+def test_cli_track_seeded_marker_leaving_the_region_is_lost(tmp_path):
+    """A seeded bead moving right across the edge of a given mask (x < 120 searched) is
+    followed while inside and reported lost once outside (the search windows see only the
+    region), where the automatic field follows it all the way."""
+    xs = np.linspace(95.2, 145.7, 12)
+    dirs, beads = _roi_views(tmp_path, moving=xs)
+    left = beads[beads[:, 0] < 120]            # the still beads inside the region, and the moving one
+    seeds = pd.DataFrame([{"view": "cam1", "marker": f"B{k}", "x_px": x + 0.6, "y_px": y - 0.4}
+                          for k, (x, y) in enumerate(left)]
+                         + [{"view": "cam1", "marker": "MV", "x_px": xs[0] + 0.6, "y_px": 100.3 - 0.4}])
+    seeds.to_csv(tmp_path / "seeds.csv", index=False)
+    m = np.zeros((200, 200), np.uint8)
+    m[:, :120] = 1
+    cv2.imwrite(str(tmp_path / "m.png"), m)
+    args = ["-q", "track", "--view", f"cam1={dirs['cam1']}", "--seeds", str(tmp_path / "seeds.csv"),
+            "--diameter-px", "5", "--fps", "2"]
+    for roi, name in ((None, "auto"), (str(tmp_path / "m.png"), "mask")):
+        out = tmp_path / name
+        r = CliRunner().invoke(cli, [*args, *(["--roi", roi] if roi else []), "-o", str(out)])
+        assert r.exit_code == 0, r.output
+        t = pd.read_csv(out / "markers2d.csv")
+        b5 = t[t["marker"] == "MV"].sort_values("frame")
+        e = np.hypot(b5["x_px"] - xs, b5["y_px"] - 100.3)
+        if roi is None:
+            assert b5["found"].all() and e.max() < 0.3
+            continue
+        inside = xs < 120 - 3          # the bead's peak pixel and its fit within the region
+        assert b5["found"].to_numpy()[inside].all() and (e[inside] < 0.3).all()
+        assert not b5["found"].to_numpy()[xs > 120 + 3].any()
+        ev = json.loads((out / "track.json").read_text())["events"]
+        assert any(x["marker"] == "MV" and x["kind"] == "lost" for x in ev)
+        # the other beads, all inside, are unaffected
+        assert t[t["marker"] != "MV"]["found"].all()
+
+
+def test_cli_track_bad_region_of_interest(tmp_path):
+    """A mask of another size than the frames, a circle holding no pixel, a seed outside the
+    region, a per-view region that leaves out a view, a mask with no pixel set, both --roi
+    forms mixed: exit 2 naming the file or key, nothing written."""
+    dirs, beads = _roi_views(tmp_path, n_frames=2)
+    seeds = pd.DataFrame([{"view": "cam1", "marker": f"B{k}", "x_px": x, "y_px": y} for k, (x, y) in enumerate(beads)])
+    seeds.to_csv(tmp_path / "seeds.csv", index=False)
+    cv2.imwrite(str(tmp_path / "small.png"), np.full((100, 200), 255, np.uint8))
+    cv2.imwrite(str(tmp_path / "empty.png"), np.zeros((200, 200), np.uint8))
+    one = ["track", "--view", f"cam1={dirs['cam1']}", "--diameter-px", "5"]
+    two = ["track", "--view", f"cam1={dirs['cam1']}", "--view", f"cam2={dirs['cam2']}", "--diameter-px", "5"]
+    cases = [(one + ["--roi", str(tmp_path / "small.png")], "small.png"),
+             (one + ["--roi", str(tmp_path / "empty.png")], "selects no pixel"),
+             (one + ["--roi", "900,900,50"], "holds no pixel"),
+             (one + ["--roi", "70,70,75", "--seeds", str(tmp_path / "seeds.csv")], "B1 in cam1 at (160.2, 45.1)"),
+             (two + ["--roi", "auto", "--roi", "cam1=none"], "not both"),
+             (two + ["--roi", "cam1=none", "--roi", "cam1=auto"], "given twice")]
+    cfg = tmp_path / "t.yaml"
+    cfg.write_text(f"views: {{cam1: {dirs['cam1']}, cam2: {dirs['cam2']}}}\ndetection: {{roi: {{cam1: none}}}}\n")
+    cases.append((["track", str(cfg)], "every view"))
+    for k, (args, word) in enumerate(cases):
+        out = tmp_path / f"out{k}"
+        r = CliRunner().invoke(cli, [*args, "-o", str(out)])
+        assert r.exit_code == 2 and word in r.output and not out.exists(), (args, r.output)

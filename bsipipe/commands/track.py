@@ -28,7 +28,7 @@ import math
 import os
 import sys
 from pathlib import Path
-from typing import Literal, Sequence
+from typing import Literal, Sequence, Union
 
 import numpy as np
 import pandas as pd
@@ -38,6 +38,19 @@ from ..config import StrictModel, load_yaml, validate
 from ..errors import InputError, ProcessingError
 
 log = logging.getLogger(__name__)
+
+
+class RoiCircle(StrictModel):
+    """A circular region of interest in a view's pixels (the keys of track.json's
+    ``field_of_view``, so the field an earlier run found can be pasted in and adjusted)."""
+
+    centre_px: tuple[float, float] = Field(description="centre x, y (px)")
+    radius_px: PositiveFloat = Field(description="radius (px)")
+
+
+#: A region of interest: found in the frames ("auto"), none, a circle, or a mask image's path
+#: (non-zero pixels are searched; the frames' size).
+RoiSpec = Union[Literal["auto", "none"], RoiCircle, str]
 
 
 class DetectionConfig(StrictModel):
@@ -55,7 +68,11 @@ class DetectionConfig(StrictModel):
     max_sigma_factor: PositiveFloat | None = Field(0.75, description="a fitted Gaussian width above this times the "
                                                    "diameter is not a marker (null: no limit)")
     blur_px: PositiveFloat | None = Field(None, description="marker blur sigma (default max(0.6, d/5))")
-    roi: Literal["auto", "none"] = Field("auto", description="auto: the intensifier's circular field; none: whole frame")
+    roi: Union[RoiSpec, dict[str, RoiSpec]] = Field(
+        "auto", description="where markers are looked for: auto (the intensifier's circular field, found in the "
+                            "first frame), none (the whole frame), a circle {centre_px: [x, y], radius_px: r}, or "
+                            "a mask image (its non-zero pixels; the frames' size); or one of these per view "
+                            "({cam1: auto, cam2: {centre_px: [512, 500], radius_px: 470}})")
 
     @model_validator(mode="before")
     @classmethod
@@ -134,6 +151,14 @@ class TrackConfig(StrictModel):
                              f"{', '.join(views)}; diameters for {', '.join(v)}")
         return v
 
+    @model_validator(mode="after")
+    def _rois_per_view(self):
+        roi = self.detection.roi
+        if isinstance(roi, dict) and set(roi) != set(self.views):
+            raise ValueError(f"detection.roi: a region of interest per view must give every view and only them: "
+                             f"views {', '.join(self.views)}; regions for {', '.join(roi)}")
+        return self
+
     @field_validator("views")
     @classmethod
     def _names(cls, v: dict) -> dict:
@@ -193,6 +218,48 @@ def _parse_diameters(values: Sequence[str]) -> float | dict[str, float] | None:
     return out
 
 
+def _parse_roi(text: str):
+    """One ``--roi`` value: ``auto``, ``none``, a circle ``X,Y,R`` (px) or a mask image's path."""
+    t = text.strip()
+    if t in ("auto", "none"):
+        return t
+    parts = t.split(",")
+    if len(parts) == 3:
+        try:
+            x, y, r = (float(a) for a in parts)
+        except ValueError:
+            pass
+        else:
+            if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(r) and r > 0):
+                raise InputError(f"--roi {text!r}: a circle is X,Y,R with a positive radius (px)", key="roi")
+            return {"centre_px": [x, y], "radius_px": r}
+    if not t:
+        raise InputError("--roi: empty value (auto, none, X,Y,R or a mask image)", key="roi")
+    return t
+
+
+def _parse_rois(values: Sequence[str], views: dict):
+    """``--roi``: one region for every view (given more than once, the last counts), or
+    ``NAME=REGION`` per view (repeated; NAME a view's name)."""
+    named: dict = {}
+    plain = []
+    for s in values:
+        k, _, rest = s.partition("=")
+        if rest and k.strip() in views:
+            k = k.strip()
+            if k in named:
+                raise InputError(f"--roi {k!r} given twice", key="roi")
+            named[k] = _parse_roi(rest)
+        else:
+            plain.append(s)
+    if named and plain:
+        raise InputError("--roi: give one region for every view, or NAME=REGION for each view, not both", key="roi")
+    if named:
+        # views not named keep the automatic field
+        return {v: named.get(v, "auto") for v in views}
+    return _parse_roi(plain[-1])
+
+
 def build_config(config_path=None, *, view=(), calibration=None, polarity=None, diameter_px=None, seeds=None,
                  fps=None, loop=None, **extra) -> TrackConfig:
     """The validated config: the YAML file (paths relative to it), command-line options win."""
@@ -207,6 +274,11 @@ def build_config(config_path=None, *, view=(), calibration=None, polarity=None, 
         data["views"] = _parse_views(view)
     if isinstance(diameter_px, (tuple, list)):           # the command line's --diameter-px values
         diameter_px = _parse_diameters(diameter_px)
+    roi = extra.pop("roi", None)
+    if isinstance(roi, (tuple, list)):                   # the command line's --roi values
+        roi = _parse_rois(roi, data.get("views") or {}) if roi else None
+    if roi is not None:
+        data.setdefault("detection", {})["roi"] = roi
     for k, v in (("calibration", calibration), ("polarity", polarity), ("diameter_px", diameter_px),
                  ("seeds", seeds), ("fps", fps), ("loop", loop)):
         if v is not None:
@@ -214,7 +286,7 @@ def build_config(config_path=None, *, view=(), calibration=None, polarity=None, 
     for k, v in extra.items():
         if v is None:
             continue
-        if k in ("method", "parity", "minmass", "k_sigma", "min_snr", "roi"):
+        if k in ("method", "parity", "minmass", "k_sigma", "min_snr"):
             data.setdefault("detection", {})[k] = v
         else:
             data[k] = v
@@ -224,9 +296,89 @@ def build_config(config_path=None, *, view=(), calibration=None, polarity=None, 
     if base is not None:
         def fix(p):
             return None if p is None else str(p if os.path.isabs(p) else base / p)
+        def fix_roi(r):
+            return fix(r) if isinstance(r, str) and r not in ("auto", "none") else r
+
+        roi = cfg.detection.roi
+        roi = {k: fix_roi(r) for k, r in roi.items()} if isinstance(roi, dict) else fix_roi(roi)
         cfg = cfg.model_copy(update={"views": {k: fix(v) for k, v in cfg.views.items()},
-                                     "calibration": fix(cfg.calibration), "seeds": fix(cfg.seeds)})
+                                     "calibration": fix(cfg.calibration), "seeds": fix(cfg.seeds),
+                                     "detection": cfg.detection.model_copy(update={"roi": roi})})
     return cfg
+
+
+def _roi_per_view(cfg) -> dict:
+    """``detection.roi`` per view (the same for every view unless given per view)."""
+    r = cfg.detection.roi
+    return dict(r) if isinstance(r, dict) else {v: r for v in cfg.views}
+
+
+def _given_roi(cfg) -> bool:
+    """Whether some view's region of interest is given (a circle or a mask), not auto or none."""
+    return any(not isinstance(r, str) or r not in ("auto", "none") for r in _roi_per_view(cfg).values())
+
+
+def _resolve_rois(cfg, shapes: dict, config_path) -> dict:
+    """Each view's region of interest for the tracker: "auto", "none", or a
+    :class:`~bsipipe.imaging.detect.FieldOfView` built from a given circle or mask image.
+    A view named that is not tracked, a view left out, a circle outside the frame, a mask of
+    another size than the frames or with no pixel set: an error naming the file or key."""
+    from ..imaging.detect import FieldOfView
+    from ..io.images import iter_frames
+    per = _roi_per_view(cfg)
+    if set(per) != set(cfg.views):
+        raise InputError(f"a region of interest per view must give every view and only them: views "
+                         f"{', '.join(cfg.views)}; regions for {', '.join(per)}", path=config_path,
+                         key="detection.roi")
+    out = {}
+    for v, r in per.items():
+        shape = shapes.get(v)
+        if isinstance(r, str) and r in ("auto", "none"):
+            out[v] = r
+            continue
+        if shape is None:             # a view without frames: reported later
+            out[v] = "none"
+            continue
+        h, w = int(shape[0]), int(shape[1])
+        if isinstance(r, RoiCircle):
+            cx, cy = (float(a) for a in r.centre_px)
+            # the frame's nearest pixel to the centre must lie inside the circle
+            nx, ny = min(max(cx, 0.0), w - 1.0), min(max(cy, 0.0), h - 1.0)
+            if not (math.isfinite(cx) and math.isfinite(cy)) or math.hypot(nx - cx, ny - cy) >= r.radius_px:
+                raise InputError(f"view {v!r}: the region of interest (circle at {cx:g}, {cy:g}, radius "
+                                 f"{r.radius_px:g} px) holds no pixel of its {w}x{h} px frames", path=config_path,
+                                 key="detection.roi")
+            out[v] = FieldOfView((h, w), (cx, cy), float(r.radius_px), found=True, given=True)
+            continue
+        if not os.path.isfile(r):
+            raise InputError(f"view {v!r}: region of interest mask: no such file", path=r, key="detection.roi")
+        fr = next(iter(iter_frames(r)), None)
+        if fr is None:
+            raise InputError(f"view {v!r}: region of interest mask: no image in the file", path=r)
+        m = np.asarray(fr.image) != 0
+        if m.shape != (h, w):
+            raise InputError(f"view {v!r}: the region of interest mask is {m.shape[1]}x{m.shape[0]} px, the "
+                             f"view's frames {w}x{h} px", path=r)
+        if not m.any():
+            raise InputError(f"view {v!r}: the region of interest mask selects no pixel (non-zero pixels are "
+                             "searched)", path=r)
+        out[v] = FieldOfView((h, w), region=m, given=True)
+    return out
+
+
+def _seeds_outside(seed_df: pd.DataFrame, rois: dict) -> list[tuple[str, str, float, float]]:
+    """Seeds outside their view's given region of interest, as ``(view, marker, x, y)``."""
+    from ..imaging.detect import FieldOfView
+    out = []
+    for v, g in seed_df.groupby("view", sort=False):
+        fov = rois.get(v)
+        if not isinstance(fov, FieldOfView):
+            continue
+        xy = g[["x_px", "y_px"]].to_numpy(float)
+        for name, (x, y), ok in zip(g["marker"], xy, fov.contains(xy)):
+            if not ok:
+                out.append((v, str(name), float(x), float(y)))
+    return out
 
 
 def read_seeds(path, views: Sequence[str], frame_shapes: dict | None = None) -> pd.DataFrame:
@@ -428,22 +580,24 @@ def _polarity_from_seeds(firsts: dict, seeds: pd.DataFrame, diameter_px: float |
                  f"bright in the first frame"), n
 
 
-def _polarity_from_frames(firsts: dict, diameter_px: float | None) -> tuple[str, str, dict]:
+def _polarity_from_frames(firsts: dict, diameter_px: float | None, rois: dict | None = None
+                          ) -> tuple[str, str, dict]:
     """Dark or bright markers without seeds: every view's first frame is searched whole
     (:func:`~bsipipe.imaging.detect.detect_arrays`) for dark and for bright markers, and
     those of SNR 6 or more are counted.  Steel beads in a raw frame give a dozen such dark
     spots and hardly any bright ones; bright is taken only where it finds at least 3 and
-    twice as many as dark.  ``firsts``: each view's first frame (:func:`_first_frames`)."""
+    twice as many as dark.  ``firsts``: each view's first frame (:func:`_first_frames`);
+    ``rois``: each view's region of interest (default: its field, found)."""
     from ..imaging.detect import detect_arrays
     # without a diameter, at 4 px, then 8 and 16 px where 4 px finds fewer than 3 of either
     # (markers much larger than 4 px are not seen by a top-hat that small)
     for d in ([diameter_px] if diameter_px else [4.0, 8.0, 16.0]):
         n = {"dark": 0, "bright": 0}
-        for img in firsts.values():
+        for v, img in firsts.items():
             if img is None:
                 continue
             for p in n:
-                n[p] += int((detect_arrays(img, d, p)["snr"] >= 6.0).sum())
+                n[p] += int((detect_arrays(img, d, p, (rois or {}).get(v))["snr"] >= 6.0).sum())
         if max(n.values()) >= 3:
             break
     pol = "bright" if n["bright"] >= 3 and n["bright"] >= 2 * n["dark"] else "dark"
@@ -475,7 +629,7 @@ def _view_diameters(est: dict, views) -> tuple[float, dict, str]:
     return d, per_view, f"{v0}: {how}"
 
 
-def _diameter_without_seeds(first: np.ndarray, polarity: str) -> tuple[float, str]:
+def _diameter_without_seeds(first: np.ndarray, polarity: str, roi=None) -> tuple[float, str]:
     """Marker diameter of a view without seeds, from its first frame searched whole
     (:func:`~bsipipe.imaging.detect.detect_arrays`): 4 px (the default) where that finds 3 or
     more markers of SNR 6 or more; else the first of 8 and 16 px that does, refined to 2.5
@@ -484,7 +638,7 @@ def _diameter_without_seeds(first: np.ndarray, polarity: str) -> tuple[float, st
     from ..imaging.detect import detect_arrays
 
     def strong(d):
-        r = detect_arrays(first, d, polarity)
+        r = detect_arrays(first, d, polarity, roi)
         ok = (r["snr"] >= 6.0) & np.isfinite(r["sigma_px"])
         return int(ok.sum()), r["sigma_px"][ok]
 
@@ -695,7 +849,7 @@ def _missing_frame_rows(table: pd.DataFrame, missing: dict[str, list[int]], fps:
     return out.iloc[np.lexsort((out["frame"].to_numpy(), rank.to_numpy()))].reset_index(drop=True)
 
 
-def _track_views(cfg, views, seed_df, d: dict, det, tk, progress: bool):
+def _track_views(cfg, views, seed_df, d: dict, det, tk, progress: bool, rois: dict):
     """Track every view (:func:`bsipipe.imaging.track.track_view`), frames decoded ahead on
     threads (a pool for a folder of frames, :func:`decode_workers`; :func:`prefetched` for
     every source, so videos and stacks overlap too); returns the per-view tables, the events, the per-view info, each view's first
@@ -732,7 +886,7 @@ def _track_views(cfg, views, seed_df, d: dict, det, tk, progress: bool):
         try:
             frames = iter_frames(path, channel=cfg.channel, hashes=frame_hashes, workers=decode_workers())
             res = track_view(prefetched(frames), s, d[v], cfg.polarity, view=v,
-                             fps=cfg.fps, roi=cfg.detection.roi, detection=det, settings=tk, on_frame=on_frame)
+                             fps=cfg.fps, roi=rois[v], detection=det, settings=tk, on_frame=on_frame)
         except ValueError as e:
             raise InputError(str(e), path=path) from None
         finally:
@@ -764,8 +918,10 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
             raise InputError(f"view {v}: no such file or folder", path=p)
     # each view's first frame, for the seeds' check, the polarity and the diameter (then let go)
     firsts = (_first_frames(cfg.views, cfg.channel)
-              if cfg.seeds or cfg.polarity == "auto" or cfg.diameter_px is None or cfg.calibration else {})
+              if cfg.seeds or cfg.polarity == "auto" or cfg.diameter_px is None or cfg.calibration
+              or _given_roi(cfg) else {})
     shapes = {v: None if im is None else im.shape for v, im in firsts.items()}
+    rois = _resolve_rois(cfg, shapes, config_path) if _given_roi(cfg) else _roi_per_view(cfg)
     rig = None
     if cfg.calibration:
         rig, pair = _read_calibration(cfg.calibration, views)
@@ -779,6 +935,12 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
                                  "size): calibrate from frames of this size, or track frames of the calibrated size",
                                  path=cfg.calibration)
     seed_df = read_seeds(cfg.seeds, views, shapes) if cfg.seeds else None
+    if seed_df is not None:
+        outside = _seeds_outside(seed_df, rois)
+        if outside:
+            raise InputError("seeds outside their view's given region of interest (detection.roi): "
+                             + "; ".join(f"{m} in {v} at ({x:.1f}, {y:.1f})" for v, m, x, y in outside),
+                             path=cfg.seeds)
     # a diameter per view (config) is probed as no diameter: 4, 8 and 16 px
     one_d = cfg.diameter_px if not isinstance(cfg.diameter_px, dict) else None
     polarity_note = "given"
@@ -787,7 +949,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         if seed_df is not None:
             pol, polarity_note, polarity_counts = _polarity_from_seeds(firsts, seed_df, one_d)
         else:
-            pol, polarity_note, polarity_counts = _polarity_from_frames(firsts, one_d)
+            pol, polarity_note, polarity_counts = _polarity_from_frames(firsts, one_d, rois)
         cfg = cfg.model_copy(update={"polarity": pol})
         log.info("track: markers %s (%s)", pol, polarity_note)
     d = cfg.diameter_px
@@ -803,7 +965,8 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
             est = {v: _estimate_diameter(firsts[v], seed_df[seed_df["view"] == v], cfg.polarity)
                    for v in dict.fromkeys(seed_df["view"]) if firsts.get(v) is not None}
         else:
-            est = {v: _diameter_without_seeds(im, cfg.polarity) for v, im in firsts.items() if im is not None}
+            est = {v: _diameter_without_seeds(im, cfg.polarity, rois.get(v)) for v, im in firsts.items()
+                   if im is not None}
         d, per_view_d, diameter_note = _view_diameters(est, views)
         log.info("track: marker diameter %s (%s)", ", ".join(f"{v} {x:.2f} px" for v, x in per_view_d.items())
                  if len(set(per_view_d.values())) > 1 else f"{d:.2f} px", diameter_note)
@@ -841,7 +1004,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     cv2.setNumThreads(1)
     try:
         tables, events, info, first_images, frame_hashes = _track_views(
-            cfg, views, seed_df, per_view_d, det, tk, progress)
+            cfg, views, seed_df, per_view_d, det, tk, progress, rois)
     finally:
         cv2.setNumThreads(cv2_threads)
     table = pd.concat(tables, ignore_index=True)
@@ -989,9 +1152,11 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         del sub
         if det.parity == "none":
             # the frames can be searched again in windows, for the loop's track-capture
+            from ..imaging.detect import FieldOfView
             data.windows = WindowSource({v: cfg.views[v] for v in pair}, {v: per_view_d[v] for v in pair},
                                         cfg.polarity, det, channel=cfg.channel,
-                                        workers=decode_workers())
+                                        workers=decode_workers(),
+                                        rois={v: rois[v] for v in pair if isinstance(rois.get(v), FieldOfView)})
         if not data.markers:
             raise InputError(f"no marker is tracked in both {pair[0]} and {pair[1]} (the seeds must use the same "
                              "marker names in both views)", path=cfg.seeds)

@@ -44,7 +44,7 @@ from __future__ import annotations
 import functools
 import math
 import sys
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Literal
 
 import cv2
@@ -71,15 +71,30 @@ _CROSS_DY, _CROSS_DX = np.array([-1, 0, 0, 1]), np.array([0, -1, 1, 0])   # the 
 
 @dataclass(frozen=True)
 class FieldOfView:
-    """The image intensifier's circular field (``found``), else the whole image.
+    """The image intensifier's circular field (``found``), else the whole image; and, when
+    ``region`` is given, only its pixels.
 
     ``centre_px`` (x, y) and ``radius_px`` in the frame's pixels; ``shape`` (h, w).
+    ``region``: a bool (h, w) mask of the pixels to search (a region of interest the user
+    drew, e.g. to leave out an instrument or a label), else None.  ``given``: the circle or
+    the region came from the user, not from the frames (:func:`find_field_of_view`).
     """
 
     shape: tuple[int, int]
     centre_px: tuple[float, float] | None = None
     radius_px: float | None = None
     found: bool = False
+    region: np.ndarray | None = field(default=None, compare=False, repr=False)
+    given: bool = False
+
+    def _region_within(self, margin_px: float) -> np.ndarray:
+        """``region`` shrunk by ``margin_px`` (a disk erosion; the image border is outside)."""
+        r = np.asarray(self.region, bool)
+        k = int(math.ceil(margin_px))
+        if k <= 0:
+            return r
+        se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))
+        return cv2.erode(r.view(np.uint8), se, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
 
     def mask(self, margin_px: float = 0.0) -> np.ndarray:
         """Boolean (h, w) mask of the pixels at least ``margin_px`` inside the field."""
@@ -88,10 +103,13 @@ class FieldOfView:
             m = np.zeros((h, w), bool)
             b = int(math.ceil(margin_px))
             m[b:h - b, b:w - b] = True
-            return m
-        ys, xs = np.ogrid[:h, :w]
-        cx, cy = self.centre_px
-        return (xs - cx) ** 2 + (ys - cy) ** 2 <= (self.radius_px - margin_px) ** 2
+        else:
+            ys, xs = np.ogrid[:h, :w]
+            cx, cy = self.centre_px
+            m = (xs - cx) ** 2 + (ys - cy) ** 2 <= (self.radius_px - margin_px) ** 2
+        if self.region is not None:
+            m &= self._region_within(margin_px)
+        return m
 
     def contains(self, xy, margin_px: float = 0.0) -> np.ndarray:
         """Which points (N, 2) lie at least ``margin_px`` inside the field (and the image)."""
@@ -102,11 +120,21 @@ class FieldOfView:
         if self.found:
             cx, cy = self.centre_px
             ok &= np.hypot(xy[:, 0] - cx, xy[:, 1] - cy) <= self.radius_px - margin_px
+        if self.region is not None and ok.any():
+            r = self._region_within(margin_px)
+            xi = np.clip(np.rint(np.nan_to_num(xy[:, 0])).astype(int), 0, w - 1)
+            yi = np.clip(np.rint(np.nan_to_num(xy[:, 1])).astype(int), 0, h - 1)
+            ok &= r[yi, xi]
         return ok
 
     def to_dict(self) -> dict:
-        return {"found": self.found, "centre_px": None if self.centre_px is None else list(self.centre_px),
-                "radius_px": self.radius_px, "shape": list(self.shape)}
+        d = {"found": self.found, "centre_px": None if self.centre_px is None else list(self.centre_px),
+             "radius_px": self.radius_px, "shape": list(self.shape)}
+        if self.given:
+            d["given"] = True
+        if self.region is not None:
+            d["region_px"] = int(np.count_nonzero(self.region))
+        return d
 
 
 def _fit_circle(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
@@ -1322,6 +1350,10 @@ class _Region:
     def __init__(self, shape, fov: FieldOfView | None = None, margin: float = 0.0, border: bool = False,
                  mask: np.ndarray | None = None, dark: np.ndarray | None = None):
         self.shape, self.fov, self.margin, self.border = shape, fov, float(margin), border
+        if fov is not None and fov.region is not None:
+            # a region drawn by the user: its pixels only (the field's circle and border as well)
+            r = np.asarray(fov.region, bool)
+            mask = r if mask is None else (np.asarray(mask, bool) & r)
         self.mask, self.dark = mask, dark
 
     @property
@@ -1848,6 +1880,13 @@ def window_arrays(frame: np.ndarray, centres_xy, radii_px, diameter_px: float, p
             cols = icx[:, None] + off[None, :]
             inf = ((cols[:, None, :] - fx) ** 2 + (rows[:, :, None] - fy) ** 2) <= fov.radius_px ** 2
             use = inf if use is None else use & inf
+    if fov is not None and fov.region is not None:
+        # a region of interest the user gave: its pixels only (outside the image: not in it)
+        off = np.arange(-half, half + 1)
+        rows = icy[:, None] + off[None, :]
+        cols = icx[:, None] + off[None, :]
+        inr = np.asarray(fov.region, bool)[_clamp(rows, 0, h - 1)[:, :, None], _clamp(cols, 0, w - 1)[:, None, :]]
+        use = inr if use is None else use & inr
     core = _strip_core(W, n, b)
     use = core if use is None else core & use.transpose(1, 0, 2).reshape(W, n * W)
     ts = smoothed_tophat(wide, diameter_px, polarity, k, sg).reshape(W, n, Wp)

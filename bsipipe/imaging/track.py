@@ -671,10 +671,18 @@ def _unpack(fr, k: int, fps: float | None):
 
 
 def _resolve_roi(img, roi):
+    """The :class:`FieldOfView` a view is searched in: ``roi`` itself (given), the field found
+    in ``img`` (None or "auto"), a bool mask (h, w) of the pixels to search, or None ("none")."""
     if isinstance(roi, FieldOfView):
         return roi
     if roi is None or (isinstance(roi, str) and roi == "auto"):
         return find_field_of_view(img)
+    if isinstance(roi, np.ndarray):
+        m = np.asarray(roi, bool)
+        if m.shape != np.shape(img)[:2]:
+            raise ValueError(f"the region of interest is {m.shape[1]}x{m.shape[0]} px, the frames "
+                             f"{np.shape(img)[1]}x{np.shape(img)[0]}")
+        return FieldOfView(tuple(m.shape), region=m, given=True)
     return None
 
 
@@ -818,8 +826,10 @@ def _track_swept(frames, diameter_px, polarity, *, view, fps, roi, detection, se
             fov = _resolve_roi(img, roi)
             fov_info = fov.to_dict() if fov is not None else {"found": False}
             auto = roi is None or (isinstance(roi, str) and roi == "auto")
-            where = (fov if fov.found else "none") if auto else roi
-            dark = True if (auto and polarity == "dark") else None
+            # a field found or given (a circle or a drawn region); dark objects are left out of
+            # both (a given region says where to look, not that no instrument is there)
+            where = fov if (fov is not None and (fov.found or fov.region is not None)) else "none"
+            dark = True if ((auto or (fov is not None and fov.given)) and polarity == "dark") else None
         live = [i for i, m in enumerate(markers) if not m.ended]
         found_xy = np.zeros((0, 2))
         lost, lost_pred, lost_gate = [], np.zeros((0, 2)), np.zeros(0)

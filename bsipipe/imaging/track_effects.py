@@ -974,8 +974,10 @@ class WindowSource:
     """
 
     def __init__(self, sources: dict, diameter_px: float | dict, polarity="dark", detection=None, *,
-                 channel: int | None = None, workers: int = 1):
+                 channel: int | None = None, workers: int = 1, rois: dict | None = None):
         self.sources = dict(sources)
+        # view -> the FieldOfView a region of interest the user gave (its windows search it only)
+        self.rois = dict(rois or {})
         # one diameter, or one per view (views at different magnifications)
         self.diameters = ({v: float(diameter_px[v]) for v in self.sources} if isinstance(diameter_px, dict)
                           else {v: float(diameter_px) for v in self.sources})
@@ -1008,7 +1010,7 @@ class WindowSource:
                     continue
                 c = np.array([[q[1], q[2]] for q in qs], float)
                 r = np.array([q[3] for q in qs], float)
-                cand = window_arrays(fr.image, c, r, self.diameters[view], self.polarity, det)
+                cand = window_arrays(fr.image, c, r, self.diameters[view], self.polarity, det, self.rois.get(view))
                 xy = np.column_stack([cand["x_px"], cand["y_px"]])
                 for q, cc, rr in zip(qs, c, r):
                     inside = np.hypot(xy[:, 0] - cc[0], xy[:, 1] - cc[1]) <= rr
