@@ -171,6 +171,22 @@ def test_leave_one_out_flags_a_displaced_reference():
     assert loo[2]["error_mm"] > 1.0
 
 
+def test_leave_one_out_on_exact_data_is_no_evidence():
+    """References mapped exactly (residuals at rounding, 1e-15 mm): no point is held out as
+    moved (the F ratio of two rounding sums had flagged one, and register dropped a reference
+    of an exact trial with numpy 2.4); a point moved by 1 micrometre among exact ones still is."""
+    rng = np.random.default_rng(2)
+    x = rng.uniform(-40, 40, (5, 3)) + np.array([0.0, 0.0, 120.0])
+    T = Similarity(R=T_TRUE.R, t_mm=T_TRUE.t_mm, scale=1.0)
+    y = T.apply(x)
+    loo = leave_one_out(x, y, scale=False)
+    assert all(d["p"] > 0.5 and d["delta_bic"] < 0 for d in loo), loo
+    y[2] += [1e-3, 0.0, 0.0]
+    loo = leave_one_out(x, y, scale=False)
+    p = np.array([d["p_bonferroni"] for d in loo])
+    assert np.argmin(p) == 2 and p[2] < 1e-6 and loo[2]["delta_bic"] > 10
+
+
 def test_leave_one_out_false_alarm_rate_on_clean_data():
     alarms = 0
     for seed in range(200):

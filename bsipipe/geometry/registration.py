@@ -317,6 +317,14 @@ def tre_perturbation(T: Similarity, x_fiducials, x_targets, fle_mm: float, *, sc
             "n_draws": int(n_draws), "seed": int(seed)}
 
 
+def rounding_rss(n_values: int, *coords) -> float:
+    """The residual sum of squares of ``n_values`` residuals that floating-point rounding alone
+    gives for points of the magnitude of ``coords`` (a thousand units in the last place of
+    the largest coordinate each): sums below it hold no evidence, their ratios only rounding."""
+    big = max((float(np.max(np.abs(c))) for c in coords if np.size(c)), default=1.0)
+    return float(n_values) * (1e3 * np.finfo(float).eps * max(big, 1.0)) ** 2
+
+
 def leave_one_out(x, y, *, scale: bool) -> list[dict]:
     r"""Each point predicted by a fit of the others: the test for one reference that moved.
 
@@ -337,7 +345,9 @@ def leave_one_out(x, y, *, scale: bool) -> list[dict]:
     dof2 = 3 * (n - 1) - p
     if dof2 <= 0:
         raise ValueError(f"leave-one-out needs at least 4 points, got {n}")
-    rss = float(np.sum(residual_vectors(fit_similarity(x, y, scale=scale), x, y) ** 2))
+    # sums of squares at the level of rounding are exact fits (a moved point cannot show there)
+    floor = rounding_rss(3 * n, x, y)
+    rss = max(float(np.sum(residual_vectors(fit_similarity(x, y, scale=scale), x, y) ** 2)), floor)
     out = []
     for k in range(n):
         keep = np.arange(n) != k
@@ -348,7 +358,7 @@ def leave_one_out(x, y, *, scale: bool) -> list[dict]:
                         "p": float("nan"), "p_bonferroni": float("nan"), "delta_bic": float("nan"),
                         "note": "the other points are collinear"})
             continue
-        rss_k = float(np.sum(residual_vectors(Tk, x[keep], y[keep]) ** 2))
+        rss_k = max(float(np.sum(residual_vectors(Tk, x[keep], y[keep]) ** 2)), floor)
         err = float(np.linalg.norm(y[k] - Tk.apply(x[k])))
         tiny = np.finfo(float).tiny
         f = ((rss - rss_k) / 3.0) / max(rss_k / dof2, tiny)

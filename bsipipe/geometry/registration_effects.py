@@ -64,7 +64,7 @@ import numpy as np
 from scipy import stats
 
 from ..loop import Effect, LoopReport, run_loop
-from .registration import Similarity, fit_similarity, leave_one_out, n_params, reference_motion
+from .registration import Similarity, fit_similarity, leave_one_out, n_params, reference_motion, rounding_rss
 
 __all__ = ["RegistrationSpec", "RegistrationData", "RegistrationFit", "fit_registration",
            "registration_covariates", "registration_effects", "close_registration_loop",
@@ -206,7 +206,7 @@ def _check_evidence(data: RegistrationData, before, after) -> dict | None:
         return None
     rss = [float(np.sum((data.check_y_mm - f.transform.apply(data.check_x_mm)) ** 2)) for f in (before, after)]
     m = len(data.check_x_mm)
-    tiny = np.finfo(float).tiny
+    tiny = rounding_rss(3 * m, data.check_x_mm, data.check_y_mm)     # below it: rounding, no evidence
     return {"n_markers": int(m), "rms_before_mm": float(np.sqrt(rss[0] / m)),
             "rms_after_mm": float(np.sqrt(rss[1] / m)),
             "delta_bic": float(3 * m * np.log(max(rss[0], tiny) / max(rss[1], tiny)))}
