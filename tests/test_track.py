@@ -1190,3 +1190,27 @@ def test_cli_track_bad_region_of_interest(tmp_path):
         out = tmp_path / f"out{k}"
         r = CliRunner().invoke(cli, [*args, "-o", str(out)])
         assert r.exit_code == 2 and word in r.output and not out.exists(), (args, r.output)
+
+
+def test_overlay_draws_the_region_searched():
+    """The overlay figure outlines each view's region of interest: a given circle (dashed
+    patch) and a given mask's edge where it crosses the panel (a contour); the title says so."""
+    from matplotlib.patches import Circle
+
+    from bsipipe.imaging.detect import FieldOfView
+    from bsipipe.report.track_figure import overlay_figure
+    img = np.full((200, 200), 120, np.uint8)
+    table = pd.DataFrame({"view": ["a", "b"], "frame": [0, 0], "marker": ["M1", "M1"], "x_px": [100.0, 100.0],
+                          "y_px": [100.0, 100.0], "found": [True, True]})
+    mask = np.zeros((200, 200), bool)
+    mask[:, :110] = True
+    regions = {"a": FieldOfView((200, 200), (100.0, 100.0), 30.0, found=True, given=True),
+               "b": FieldOfView((200, 200), region=mask, given=True)}
+    fig = overlay_figure({"a": img, "b": img}, table, {"a": 0, "b": 0}, None, 4.0, regions)
+    ax_a, ax_b = fig.axes[:2]
+    circ = [p for p in ax_a.patches if isinstance(p, Circle) and p.get_radius() == 30.0]
+    assert len(circ) == 1 and circ[0].get_linestyle() == "--"
+    assert len(ax_b.collections) >= 1 and "region of interest given" in ax_b.get_title()
+    fig = overlay_figure({"a": img, "b": img}, table, {"a": 0, "b": 0}, None, 4.0)
+    assert not [p for p in fig.axes[0].patches if isinstance(p, Circle) and p.get_radius() == 30.0]
+    assert "region of interest" not in fig.axes[1].get_title()

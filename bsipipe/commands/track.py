@@ -1353,9 +1353,18 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         from ..report.track_figure import overlay_figure, trajectories_figure
         # both figures are laid out with fixed margins: drawn once, not twice for a tight crop
         rs.add_figure("track.png", trajectories_figure(table, points3d, title="bsipipe track"), tight=False)
+        from ..imaging.detect import FieldOfView
+        # the region each view was searched in: a given one, else the field found in its frames
+        regions = {}
+        for v in first_images:
+            fi = info.get(v, {}).get("field_of_view") or {}
+            if isinstance(rois.get(v), FieldOfView):
+                regions[v] = rois[v]
+            elif fi.get("found"):
+                regions[v] = FieldOfView(tuple(fi["shape"]), tuple(fi["centre_px"]), float(fi["radius_px"]), True)
         rs.add_figure("overlay.png", overlay_figure(first_images, table, {v: int(table.loc[table["view"] == v, "frame"].min())
                                                                            for v in first_images},
-                                                    seed_df, per_view_d), tight=False)
+                                                    seed_df, per_view_d, regions), tight=False)
     inputs = [p for p in cfg.views.values()] + [p for p in (cfg.calibration, cfg.seeds) if p]
     result["provenance"] = provenance(cfg, inputs, command="track", known_hashes=frame_hashes)
     rs.add_json("track.json", result)

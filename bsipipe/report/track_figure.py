@@ -72,9 +72,11 @@ def trajectories_figure(table2d: pd.DataFrame, points3d: pd.DataFrame | None = N
 
 
 def overlay_figure(images: dict[str, np.ndarray], table2d: pd.DataFrame, frame: dict[str, int],
-                   seeds: pd.DataFrame | None = None, diameter_px: float | dict = 4.0):
+                   seeds: pd.DataFrame | None = None, diameter_px: float | dict = 4.0, regions: dict | None = None):
     """One frame per view with the tracked markers (circles, names) and the seeds (+).
-    Each panel is cropped to the markers with a margin, so small beads stay visible."""
+    Each panel is cropped to the markers with a margin, so small beads stay visible.
+    ``regions``: view -> :class:`~bsipipe.imaging.detect.FieldOfView` searched (its circle,
+    and a given mask's outline, drawn dashed where they cross the panel)."""
     from matplotlib.patches import Circle
     views = [v for v in images]
     fig = _figure((6.0 * len(views), 6.0))
@@ -101,13 +103,22 @@ def overlay_figure(images: dict[str, np.ndarray], table2d: pd.DataFrame, frame: 
         for rr in ok.itertuples():
             ax.add_patch(Circle((rr.x_px, rr.y_px), r, fill=False, color="tab:orange", lw=0.8))
             ax.annotate(str(rr.marker), (rr.x_px + r, rr.y_px - r), color="tab:orange", fontsize=7)
+        fov = (regions or {}).get(v)
+        if fov is not None and fov.found:
+            ax.add_patch(Circle(tuple(fov.centre_px), fov.radius_px, fill=False, color="tab:green", lw=0.8, ls="--"))
+        if fov is not None and fov.region is not None:
+            part = np.asarray(fov.region[y0:y1, x0:x1], float)
+            if 0.0 < part.mean() < 1.0:               # the mask's edge crosses the panel
+                ax.contour(np.arange(x0, x1), np.arange(y0, y1), part, levels=[0.5], colors="tab:green",
+                           linewidths=0.8, linestyles="--")
         if seeds is not None and len(seeds):
             s = seeds[seeds["view"] == v]
             ax.plot(s["x_px"], s["y_px"], "+", color="tab:cyan", ms=6, mew=0.8, label="seeds")
         if len(pts):
             ax.set_xlim(max(pts[:, 0].min() - m, -0.5), min(pts[:, 0].max() + m, w - 0.5))
             ax.set_ylim(min(pts[:, 1].max() + m, h - 0.5), max(pts[:, 1].min() - m, -0.5))
-        ax.set_title(f"{v}, frame {frame[v]}: {len(ok)} of {len(t)} markers found", fontsize=9)
+        given = " (dashed: the region of interest given)" if fov is not None and fov.given else ""
+        ax.set_title(f"{v}, frame {frame[v]}: {len(ok)} of {len(t)} markers found{given}", fontsize=9)
         ax.set_xlabel("x (px)")
         ax.set_ylabel("y (px)")
     fig.subplots_adjust(left=0.08, right=0.98, bottom=0.08, top=0.94, wspace=0.25)
