@@ -420,6 +420,28 @@ def test_trials_are_validated_and_planned(tmp_path):
         load_study(p)
 
 
+def test_track_region_of_interest_in_a_study(tmp_path):
+    """A mask image named in the study's track section: its path is taken relative to the
+    study config (as the other inputs), written absolute into the stage's track config, and
+    the mask is one of the stage's inputs (a changed mask redoes the stage); a circle passes
+    through as it is."""
+    from bsipipe.study_config import load_study, plan_study
+    cfg = yaml.safe_load(TINY.read_text())
+    cfg["track"] = {"detection": {"roi": "masks/m.png"}}
+    p = tmp_path / "configs" / "t.yaml"
+    (tmp_path / "configs" / "masks").mkdir(parents=True)
+    (tmp_path / "sample_data").symlink_to(ROOT / "sample_data")
+    p.write_text(yaml.safe_dump(cfg))
+    mask = str(tmp_path / "configs" / "masks" / "m.png")
+    track = next(x for x in plan_study(load_study(p, tmp_path / "o")) if x.stage == "track")
+    assert yaml.safe_load(track.config_file[1])["detection"]["roi"] == mask and mask in track.inputs
+    cfg["track"] = {"detection": {"roi": {"cam1": {"centre_px": [128, 128], "radius_px": 100}, "cam2": "auto"}}}
+    p.write_text(yaml.safe_dump(cfg))
+    track = next(x for x in plan_study(load_study(p, tmp_path / "o")) if x.stage == "track")
+    assert yaml.safe_load(track.config_file[1])["detection"]["roi"] == {
+        "cam1": {"centre_px": [128.0, 128.0], "radius_px": 100.0}, "cam2": "auto"}
+
+
 def test_sample_logs_regenerate_byte_for_byte(tmp_path):
     """sample_data/logs is what scripts/make_sample_data.py makes, byte for byte."""
     p = subprocess.run([sys.executable, str(ROOT / "scripts" / "make_sample_data.py"), "--check"],
