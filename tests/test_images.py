@@ -118,6 +118,40 @@ def test_dicom_single_multiframe_and_monochrome1(tmp_path):
     assert np.array_equal(read_image(tmp_path / "inv.dcm"), 255 - b)
 
 
+def test_dicom_compressed_multiframe(tmp_path):
+    """Multi-frame DICOM with compressed pixel data, as C-arms and PACS export it: JPEG
+    Lossless (process 14, selection value 1: the usual angiography syntax; its decoder is
+    pylibjpeg-libjpeg, a dependency) and RLE Lossless, 12-bit data in 16 bits, MONOCHROME1
+    too: every frame read back exactly, one at a time, with its time.  Without the JPEG
+    Lossless decoder such a file had been refused ("cannot decode DICOM pixel data")."""
+    import imagecodecs
+    from pydicom import dcmread
+    from pydicom.encaps import encapsulate
+    from pydicom.uid import JPEGLosslessSV1, RLELossless
+    stack = np.stack([(_ramp(dtype=np.uint16, seed=s) >> 4) for s in range(4)])      # 12-bit values
+    _write_dicom(tmp_path / "plain.dcm", stack, frame_time_ms=500.0)
+    ds = dcmread(tmp_path / "plain.dcm")
+    ds.BitsStored, ds.HighBit = 12, 11
+    ds.compress(RLELossless, stack)
+    ds.save_as(tmp_path / "rle.dcm", enforce_file_format=True)
+    ds = dcmread(tmp_path / "plain.dcm")
+    ds.BitsStored, ds.HighBit = 12, 11
+    ds.PixelData = encapsulate([imagecodecs.ljpeg_encode(f, bitspersample=12) for f in stack])
+    ds.file_meta.TransferSyntaxUID = JPEGLosslessSV1
+    ds["PixelData"].VR = "OB"
+    ds.save_as(tmp_path / "ljpeg.dcm", enforce_file_format=True)
+    for name in ("rle.dcm", "ljpeg.dcm"):
+        frames = list(iter_frames(tmp_path / name))
+        assert [f.index for f in frames] == [0, 1, 2, 3], name
+        assert all(np.array_equal(f.image, stack[k]) for k, f in enumerate(frames)), name
+        assert frames[3].time_s == pytest.approx(1.5)
+        assert np.array_equal(read_image(tmp_path / name), stack[0])
+    ds = dcmread(tmp_path / "ljpeg.dcm")
+    ds.PhotometricInterpretation = "MONOCHROME1"
+    ds.save_as(tmp_path / "ljpeg_inv.dcm", enforce_file_format=True)
+    assert np.array_equal(list(iter_frames(tmp_path / "ljpeg_inv.dcm"))[2].image, 4095 - stack[2])
+
+
 def test_dicom_series_folder_sorted_by_name(tmp_path):
     d = tmp_path / "series"
     d.mkdir()

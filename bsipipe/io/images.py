@@ -531,26 +531,33 @@ def _dicom_dataset(path: Path, *, pixels: bool = True):
         raise InputError(f"cannot read DICOM: {e}", path=path) from None
 
 
-def _dicom_pixels(ds, path: Path) -> np.ndarray:
-    """Pixel data as (n_frames, h, w[, samples]) with MONOCHROME1 inverted."""
+def _dicom_frames(ds, path: Path) -> Iterator[np.ndarray]:
+    """The file's frames one at a time, (h, w[, samples]), MONOCHROME1 inverted; ``ds`` its
+    header.  Decoded frame by frame (:func:`pydicom.pixels.iter_pixels`: a multi-frame file's
+    pixel data is never held whole), compressed transfer syntaxes included (RLE, JPEG
+    baseline and lossless, JPEG-LS, JPEG 2000: pydicom's own decoders and pylibjpeg's)."""
+    from pydicom.pixels import iter_pixels
+    spp = int(getattr(ds, "SamplesPerPixel", 1) or 1)
+    mono1 = str(getattr(ds, "PhotometricInterpretation", "")).upper() == "MONOCHROME1"
     try:
-        a = ds.pixel_array
+        frames = iter_pixels(str(path))
+        for a in frames:
+            if a.ndim != 2 + (spp > 1):
+                raise InputError(f"unexpected DICOM frame shape {a.shape}", path=path)
+            yield _monochrome1(a, ds) if mono1 else a
+    except InputError:
+        raise
     except Exception as e:  # missing pixel data, or a transfer syntax without a decoder
         raise InputError(f"cannot decode DICOM pixel data: {e}", path=path) from None
-    n = int(getattr(ds, "NumberOfFrames", 1) or 1)
-    spp = int(getattr(ds, "SamplesPerPixel", 1) or 1)
-    if n == 1:
-        a = a[None]
-    if (a.ndim != 3 + (spp > 1)):
-        raise InputError(f"unexpected DICOM pixel array shape {a.shape}", path=path)
-    if str(getattr(ds, "PhotometricInterpretation", "")).upper() == "MONOCHROME1":
-        if np.issubdtype(a.dtype, np.integer):
-            bits = int(getattr(ds, "BitsStored", np.iinfo(a.dtype).bits))
-            top = (1 << bits) - 1 if np.iinfo(a.dtype).min == 0 else int(a.max()) + int(a.min())
-            a = (top - a.astype(np.int64)).astype(a.dtype)
-        else:
-            a = a.max() + a.min() - a
-    return a
+
+
+def _monochrome1(a: np.ndarray, ds) -> np.ndarray:
+    """A MONOCHROME1 frame (low values shown bright) in the MONOCHROME2 convention."""
+    if np.issubdtype(a.dtype, np.integer):
+        bits = int(getattr(ds, "BitsStored", np.iinfo(a.dtype).bits))
+        top = (1 << bits) - 1 if np.iinfo(a.dtype).min == 0 else int(a.max()) + int(a.min())
+        return (top - a.astype(np.int64)).astype(a.dtype)
+    return a.max() + a.min() - a
 
 
 def _dicom_frame_times(ds, n: int) -> list[float | None]:
@@ -589,8 +596,10 @@ def read_image(path: str | os.PathLike, *, dtype=None, channel: int | None = Non
             errors.check(p)
         return _finish(a, dtype, True, channel, p)
     if _is_dicom(p):
-        ds = _dicom_dataset(p)
-        a = _dicom_pixels(ds, p)[0]
+        ds = _dicom_dataset(p, pixels=False)
+        a = next(iter(_dicom_frames(ds, p)), None)
+        if a is None:
+            raise InputError("DICOM file has no frame", path=p)
         return _finish(a, dtype, True, channel, p)
     return _finish(_read_cv2(p), dtype, False, channel, p)
 
@@ -632,15 +641,19 @@ def _iter_file(path: Path, dtype, channel, hashes: dict | None = None
                 yield name, _finish(a, dtype, True, channel, path, k if n > 1 else None), None, k
     elif _is_dicom(path):
         _hash_into(hashes, path)
-        ds = _dicom_dataset(path)
-        a = _dicom_pixels(ds, path)
-        n = a.shape[0]
+        ds = _dicom_dataset(path, pixels=False)
+        n = int(getattr(ds, "NumberOfFrames", 1) or 1)
         times = _dicom_frame_times(ds, n)
         # a FrameTimeVector that skips a frame period: the frames after keep their times' numbers
         ks = time_indices(times) or range(n)
-        for k in range(n):
+        k = -1
+        for k, a in enumerate(_dicom_frames(ds, path)):
+            if k >= n:
+                raise InputError(f"DICOM pixel data holds more frames than NumberOfFrames ({n})", path=path)
             name = path.name if n == 1 else f"{path.name}#{k}"
-            yield name, _finish(a[k], dtype, True, channel, path, k if n > 1 else None), times[k], ks[k]
+            yield name, _finish(a, dtype, True, channel, path, k if n > 1 else None), times[k], ks[k]
+        if k + 1 < n:
+            raise InputError(f"DICOM pixel data holds {k + 1} frame(s), NumberOfFrames says {n}", path=path)
     else:
         yield path.name, _finish(_read_cv2(path, hashes), dtype, False, channel, path), None, 0
 
