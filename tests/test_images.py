@@ -152,6 +152,24 @@ def test_dicom_compressed_multiframe(tmp_path):
     assert np.array_equal(list(iter_frames(tmp_path / "ljpeg_inv.dcm"))[2].image, 4095 - stack[2])
 
 
+def test_dicom_short_pixel_data_names_the_frame(tmp_path):
+    """A multi-frame DICOM cut short, or whose NumberOfFrames states more frames than its
+    pixel data holds: the frames before are read, then exit 2 naming the file and the frame."""
+    from pydicom import dcmread
+    stack = np.stack([_ramp(dtype=np.uint16, seed=s) for s in range(4)])
+    _write_dicom(tmp_path / "m.dcm", stack)
+    ds = dcmread(tmp_path / "m.dcm")
+    ds.NumberOfFrames = 6
+    ds.save_as(tmp_path / "six.dcm")
+    data = (tmp_path / "m.dcm").read_bytes()
+    (tmp_path / "cut.dcm").write_bytes(data[:len(data) - stack[0].nbytes - 100])
+    for name, k in (("six.dcm", 4), ("cut.dcm", 2)):
+        got = []
+        with pytest.raises(InputError, match=f"{name}, frame {k}: cannot decode DICOM pixel data") as e:
+            got.extend(fr.image for fr in iter_frames(tmp_path / name))
+        assert e.value.exit_code == 2 and len(got) == k and np.array_equal(got[-1], stack[k - 1])
+
+
 def test_dicom_series_folder_sorted_by_name(tmp_path):
     d = tmp_path / "series"
     d.mkdir()

@@ -539,16 +539,20 @@ def _dicom_frames(ds, path: Path) -> Iterator[np.ndarray]:
     from pydicom.pixels import iter_pixels
     spp = int(getattr(ds, "SamplesPerPixel", 1) or 1)
     mono1 = str(getattr(ds, "PhotometricInterpretation", "")).upper() == "MONOCHROME1"
+    n = int(getattr(ds, "NumberOfFrames", 1) or 1)
+    k = 0
     try:
-        frames = iter_pixels(str(path))
-        for a in frames:
+        for a in iter_pixels(str(path)):
             if a.ndim != 2 + (spp > 1):
-                raise InputError(f"unexpected DICOM frame shape {a.shape}", path=path)
+                raise InputError(f"unexpected DICOM frame shape {a.shape}", path=path, frame=k if n > 1 else None)
             yield _monochrome1(a, ds) if mono1 else a
+            k += 1
     except InputError:
         raise
-    except Exception as e:  # missing pixel data, or a transfer syntax without a decoder
-        raise InputError(f"cannot decode DICOM pixel data: {e}", path=path) from None
+    except Exception as e:  # missing or short pixel data, or a transfer syntax without a decoder
+        short = f" (the pixel data ends before frame {k} of the {n} NumberOfFrames states?)" if 0 < k < n else ""
+        raise InputError(f"cannot decode DICOM pixel data{short}: {e}", path=path,
+                         frame=k if n > 1 else None) from None
 
 
 def _monochrome1(a: np.ndarray, ds) -> np.ndarray:
