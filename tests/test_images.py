@@ -152,6 +152,39 @@ def test_dicom_compressed_multiframe(tmp_path):
     assert np.array_equal(list(iter_frames(tmp_path / "ljpeg_inv.dcm"))[2].image, 4095 - stack[2])
 
 
+def test_enhanced_dicom_per_frame_times(tmp_path):
+    """An enhanced multi-frame file (Enhanced XA) states each frame's time in its
+    per-frame functional groups (FrameContentSequence), not in FrameTime: the frames take
+    those times (frame 2 at 0.533 s here, the intervals uneven), and a gap of a whole period
+    numbers the frames after it by time."""
+    from pydicom import dcmread
+    from pydicom.dataset import Dataset
+    from pydicom.sequence import Sequence
+    stack = np.stack([_ramp(dtype=np.uint16, seed=s) for s in range(4)])
+    _write_dicom(tmp_path / "m.dcm", stack)
+    ds = dcmread(tmp_path / "m.dcm")
+    stamps = ["20261122101500.000000", "20261122101500.266000", "20261122101500.533000", "20261122101501.333000"]
+
+    def groups(kw):
+        out = []
+        for st in stamps:
+            fc = Dataset()
+            setattr(fc, kw, st)
+            item = Dataset()
+            item.FrameContentSequence = Sequence([fc])
+            out.append(item)
+        return Sequence(out)
+
+    for kw in ("FrameAcquisitionDateTime", "FrameReferenceDateTime"):
+        ds.PerFrameFunctionalGroupsSequence = groups(kw)
+        ds.save_as(tmp_path / "enh.dcm", enforce_file_format=True)
+        frames = list(iter_frames(tmp_path / "enh.dcm"))
+        assert [f.time_s for f in frames] == pytest.approx([0.0, 0.266, 0.533, 1.333])
+        # 0.27 s periods, then 0.8 s: the last frame is frame 5 (frames 3 and 4 not recorded)
+        assert [f.index for f in frames] == [0, 1, 2, 5]
+        assert np.array_equal(frames[3].image, stack[3])
+
+
 def test_dicom_short_pixel_data_names_the_frame(tmp_path):
     """A multi-frame DICOM cut short, or whose NumberOfFrames states more frames than its
     pixel data holds: the frames before are read, then exit 2 naming the file and the frame."""

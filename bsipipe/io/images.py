@@ -565,9 +565,11 @@ def _monochrome1(a: np.ndarray, ds) -> np.ndarray:
 
 
 def _dicom_frame_times(ds, n: int) -> list[float | None]:
-    """Frame times in s from FrameTimeVector (ms increments) or FrameTime (ms); else None.
-    A single-frame file has no time of its own (a series' times come from
-    :func:`_dicom_series`)."""
+    """Frame times in s from FrameTimeVector (ms increments) or FrameTime (ms); else, in an
+    enhanced multi-frame file (Enhanced XA, XRF), from each frame's FrameContentSequence
+    (FrameAcquisitionDateTime, else FrameReferenceDateTime) where every frame has one and they
+    increase, relative to the first; else None.  A single-frame file has no time of its own
+    (a series' times come from :func:`_dicom_series`)."""
     if n < 2:
         return [None] * n
     vec = getattr(ds, "FrameTimeVector", None)
@@ -576,6 +578,15 @@ def _dicom_frame_times(ds, n: int) -> list[float | None]:
     ft = getattr(ds, "FrameTime", None)
     if ft is not None and float(ft) > 0:
         return [i * float(ft) / 1000.0 for i in range(n)]
+    per = getattr(ds, "PerFrameFunctionalGroupsSequence", None)
+    if per is not None and len(per) == n:
+        for kw in ("FrameAcquisitionDateTime", "FrameReferenceDateTime"):
+            t = []
+            for item in per:
+                fc = getattr(item, "FrameContentSequence", None)
+                t.append(_dicom_seconds(fc[0], None, kw) if fc else None)
+            if all(v is not None for v in t) and np.all(np.diff(t) > 0):
+                return [float(v - t[0]) for v in t]
     return [None] * n
 
 
