@@ -185,6 +185,30 @@ def test_enhanced_dicom_per_frame_times(tmp_path):
         assert np.array_equal(frames[3].image, stack[3])
 
 
+def test_dicom_export_folder_with_its_dicomdir(tmp_path):
+    """A series exported from a PACS or onto a CD: files without a suffix (IM0000 ...) and the
+    export's index, DICOMDIR (a DICOM file without pixel data), in the same folder: the
+    images are the frames, the index is not one (it had stopped the command: "no pixel
+    data")."""
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.uid import ExplicitVRLittleEndian, MediaStorageDirectoryStorage, generate_uid
+    imgs = [_ramp(dtype=np.uint16, seed=s) for s in range(3)]
+    for k, a in enumerate(imgs):
+        _write_dicom(tmp_path / f"IM{k:04d}", a)
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID = MediaStorageDirectoryStorage
+    meta.MediaStorageSOPInstanceUID = generate_uid()
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds = Dataset()
+    ds.file_meta = meta
+    ds.FileSetID = "EXPORT"
+    ds.save_as(tmp_path / "DICOMDIR", enforce_file_format=True)
+    frames = list(iter_frames(tmp_path))
+    assert [f.name for f in frames] == ["IM0000", "IM0001", "IM0002"]
+    assert all(np.array_equal(f.image, imgs[k]) for k, f in enumerate(frames))
+    assert count_frames(tmp_path) == 3
+
+
 def test_dicom_short_pixel_data_names_the_frame(tmp_path):
     """A multi-frame DICOM cut short, or whose NumberOfFrames states more frames than its
     pixel data holds: the frames before are read, then exit 2 naming the file and the frame."""

@@ -99,7 +99,9 @@ def _by_name(source: str | os.PathLike) -> list[Path]:
     s = str(source)
     p = Path(s)
     if p.is_dir():
+        # a DICOMDIR (the index of a CD or PACS export, always that name) holds no image
         files = [q for q in p.iterdir() if q.is_file() and not q.name.startswith(".")
+                 and q.name.upper() != "DICOMDIR"
                  and (q.suffix.lower() in IMAGE_SUFFIXES or (q.suffix == "" and _is_dicom(q)))]
         if not files:
             raise InputError("folder holds no image files (PNG, TIFF, JPEG, BMP, DICOM)", path=p)
