@@ -88,6 +88,27 @@ def test_compressed_multipage_tiff(tmp_path):
         assert all(np.array_equal(fr.image, stack16[k]) for k, fr in enumerate(frames)), comp
 
 
+def test_tiff_stack_times_from_its_metadata(tmp_path):
+    """A stack's own time stamps: ImageJ's frame interval (Fiji's "Properties", in its time
+    unit) and OME-TIFF's per-plane DeltaT (here uneven, with a gap of two periods: the pages
+    after it are numbered by time).  A plain stack has none (the command's --fps gives them)."""
+    stack = np.stack([_ramp(dtype=np.uint16, seed=s) for s in range(4)])
+    tifffile.imwrite(tmp_path / "ij.tif", stack, imagej=True, metadata={"finterval": 0.5, "axes": "TYX"})
+    fr = list(iter_frames(tmp_path / "ij.tif"))
+    assert [f.time_s for f in fr] == pytest.approx([0.0, 0.5, 1.0, 1.5]) and [f.index for f in fr] == [0, 1, 2, 3]
+    tifffile.imwrite(tmp_path / "ijms.tif", stack, imagej=True,
+                     metadata={"finterval": 40.0, "tunit": "ms", "axes": "TYX"})
+    assert [f.time_s for f in iter_frames(tmp_path / "ijms.tif")] == pytest.approx([0.0, 0.04, 0.08, 0.12])
+    tifffile.imwrite(tmp_path / "ome.tif", stack, ome=True,
+                     metadata={"axes": "TYX", "Plane": {"DeltaT": [100.0, 600.0, 1100.0, 2600.0],
+                                                        "DeltaTUnit": ["ms"] * 4}})
+    fr = list(iter_frames(tmp_path / "ome.tif"))
+    assert [f.time_s for f in fr] == pytest.approx([0.0, 0.5, 1.0, 2.5]) and [f.index for f in fr] == [0, 1, 2, 5]
+    assert all(np.array_equal(f.image, stack[k]) for k, f in enumerate(fr))
+    tifffile.imwrite(tmp_path / "plain.tif", stack, photometric="minisblack")
+    assert [f.time_s for f in iter_frames(tmp_path / "plain.tif")] == [None] * 4
+
+
 def test_jpeg_and_colour_to_gray(tmp_path):
     rgb = np.zeros((20, 30, 3), np.uint8)
     rgb[..., 0], rgb[..., 1], rgb[..., 2] = 200, 100, 50  # R, G, B

@@ -482,6 +482,42 @@ def _tiff_pages(path: Path):
     return tif
 
 
+#: Time units of OME-TIFF's DeltaTUnit and ImageJ's tunit, in seconds.
+_TIME_UNITS = {"s": 1.0, "sec": 1.0, "second": 1.0, "seconds": 1.0, "ms": 1e-3, "msec": 1e-3, "us": 1e-6,
+               "µs": 1e-6, "\u03bcs": 1e-6, "ns": 1e-9, "min": 60.0, "h": 3600.0, "hour": 3600.0}
+
+
+def _tiff_times(tif, n: int) -> list[float | None]:
+    """Each page's time in s from the stack's own metadata: OME-TIFF's Plane DeltaT (one per
+    page, a single channel and focal plane, in DeltaTUnit), else ImageJ's frame interval
+    (``finterval``, in ``tunit``, seconds by default) for a stack of frames only; relative to
+    the first page and increasing, else None for every page."""
+    none = [None] * n
+    if n < 2:
+        return none
+    try:
+        if tif.is_ome and tif.ome_metadata:
+            import xml.etree.ElementTree as ET
+            root = ET.fromstring(tif.ome_metadata)
+            pix = next((e for e in root.iter() if e.tag.endswith("}Pixels") or e.tag == "Pixels"), None)
+            if pix is not None and int(pix.get("SizeC", 1)) == 1 and int(pix.get("SizeZ", 1)) == 1:
+                planes = [e for e in pix if e.tag.endswith("Plane") and e.get("DeltaT") is not None]
+                if len(planes) == n:
+                    t = np.array([float(e.get("DeltaT")) * _TIME_UNITS.get(e.get("DeltaTUnit", "s"), np.nan)
+                                  for e in planes])
+                    if np.all(np.isfinite(t)) and np.all(np.diff(t) > 0):
+                        return [float(v - t[0]) for v in t]
+        md = tif.imagej_metadata if tif.is_imagej else None
+        if md and md.get("finterval"):
+            dt = float(md["finterval"]) * _TIME_UNITS.get(str(md.get("tunit", "sec")).strip().lower(), np.nan)
+            only_frames = int(md.get("channels", 1) or 1) == 1 and int(md.get("slices", 1) or 1) == 1
+            if only_frames and np.isfinite(dt) and dt > 0:
+                return [k * dt for k in range(n)]
+    except (ValueError, TypeError, AttributeError, KeyError) as e:   # malformed metadata: no times
+        log.info("TIFF time metadata not read (%s)", e)
+    return none
+
+
 class _TiffErrors(logging.Handler):
     """Collects what tifffile logs at ERROR while it reads a file: a damaged page list (an
     offset past the end of a truncated stack, a corrupt tag list) is logged, not raised,
@@ -649,13 +685,17 @@ def _iter_file(path: Path, dtype, channel, hashes: dict | None = None
             errors.check(path)
             if n == 0:
                 raise InputError("TIFF file has no pages", path=path)
+            # a stack's own times (OME DeltaT, ImageJ frame interval); a gap of whole periods
+            # numbers the pages after it by time, as a DICOM clip's
+            times = _tiff_times(tif, n)
+            ks = time_indices(times) or range(n)
             for k in range(n):
                 # the page's index within the file names it in a stack; a file of one page
                 # is named by the file alone (in a folder its frame is not page 0)
                 a = _tiff_page_array(tif.pages[k], path, k if n > 1 else None)
                 errors.check(path, k if n > 1 else None)
                 name = path.name if n == 1 else f"{path.name}#{k}"
-                yield name, _finish(a, dtype, True, channel, path, k if n > 1 else None), None, k
+                yield name, _finish(a, dtype, True, channel, path, k if n > 1 else None), times[k], ks[k]
     elif _is_dicom(path):
         _hash_into(hashes, path)
         ds = _dicom_dataset(path, pixels=False)
