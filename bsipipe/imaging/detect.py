@@ -94,7 +94,8 @@ class FieldOfView:
         if k <= 0:
             return r
         se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))
-        return cv2.erode(r.view(np.uint8), se, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+        return cv2.erode(np.ascontiguousarray(r, dtype=np.uint8), se, borderType=cv2.BORDER_CONSTANT,
+                         borderValue=0) > 0
 
     def mask(self, margin_px: float = 0.0) -> np.ndarray:
         """Boolean (h, w) mask of the pixels at least ``margin_px`` inside the field."""
