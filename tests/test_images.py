@@ -17,19 +17,27 @@ def _ramp(h=24, w=32, dtype=np.uint8, seed=0):
     return rng.integers(0, top, size=(h, w), dtype=dtype, endpoint=True)
 
 
-def _write_dicom(path, frames: np.ndarray, photometric="MONOCHROME2", frame_time_ms=None, frame_time_vector=None):
-    """A minimal valid DICOM (Secondary Capture) holding ``frames`` (n, h, w) or (h, w)."""
+def _new_dicom(sop_class):
+    """An empty dataset with its file meta (explicit VR little endian) for ``sop_class``."""
     from pydicom.dataset import Dataset, FileMetaDataset
-    from pydicom.uid import ExplicitVRLittleEndian, SecondaryCaptureImageStorage, generate_uid
+    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
 
     meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = SecondaryCaptureImageStorage
+    meta.MediaStorageSOPClassUID = sop_class
     meta.MediaStorageSOPInstanceUID = generate_uid()
     meta.TransferSyntaxUID = ExplicitVRLittleEndian
     ds = Dataset()
     ds.file_meta = meta
+    return ds
+
+
+def _write_dicom(path, frames: np.ndarray, photometric="MONOCHROME2", frame_time_ms=None, frame_time_vector=None):
+    """A minimal valid DICOM (Secondary Capture) holding ``frames`` (n, h, w) or (h, w)."""
+    from pydicom.uid import SecondaryCaptureImageStorage
+
+    ds = _new_dicom(SecondaryCaptureImageStorage)
     ds.SOPClassUID = SecondaryCaptureImageStorage
-    ds.SOPInstanceUID = meta.MediaStorageSOPInstanceUID
+    ds.SOPInstanceUID = ds.file_meta.MediaStorageSOPInstanceUID
     ds.Modality = "RF"
     ds.set_pixel_data(frames, photometric_interpretation=photometric,
                       bits_stored=8 * frames.dtype.itemsize)
@@ -211,17 +219,11 @@ def test_dicom_export_folder_with_its_dicomdir(tmp_path):
     export's index, DICOMDIR (a DICOM file without pixel data), in the same folder: the
     images are the frames, the index is not one (it had stopped the command: "no pixel
     data")."""
-    from pydicom.dataset import Dataset, FileMetaDataset
-    from pydicom.uid import ExplicitVRLittleEndian, MediaStorageDirectoryStorage, generate_uid
+    from pydicom.uid import MediaStorageDirectoryStorage
     imgs = [_ramp(dtype=np.uint16, seed=s) for s in range(3)]
     for k, a in enumerate(imgs):
         _write_dicom(tmp_path / f"IM{k:04d}", a)
-    meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = MediaStorageDirectoryStorage
-    meta.MediaStorageSOPInstanceUID = generate_uid()
-    meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    ds = Dataset()
-    ds.file_meta = meta
+    ds = _new_dicom(MediaStorageDirectoryStorage)
     ds.FileSetID = "EXPORT"
     ds.save_as(tmp_path / "DICOMDIR", enforce_file_format=True)
     frames = list(iter_frames(tmp_path))
