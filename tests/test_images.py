@@ -117,6 +117,45 @@ def test_tiff_stack_times_from_its_metadata(tmp_path):
     assert [f.time_s for f in iter_frames(tmp_path / "plain.tif")] == [None] * 4
 
 
+def _ffmpeg_video(tmp_path, frames, times_s, name, codec_args):
+    """``frames`` (gray uint8) shown at ``times_s`` (the last one for a period), encoded by the
+    ffmpeg imageio-ffmpeg ships (with libx264), time stamps kept as given (variable rate)."""
+    import subprocess
+    ffmpeg = pytest.importorskip("imageio_ffmpeg").get_ffmpeg_exe()
+    lines = []
+    for k, img in enumerate(frames):
+        cv2.imwrite(str(tmp_path / f"src{k:03d}.png"), img)
+        dur = (times_s[k + 1] - times_s[k]) if k + 1 < len(times_s) else (times_s[1] - times_s[0])
+        lines += [f"file '{tmp_path / f'src{k:03d}.png'}'", f"duration {dur}"]
+    (tmp_path / "list.txt").write_text("\n".join(lines) + "\n")
+    out = tmp_path / name
+    subprocess.run([ffmpeg, "-y", "-loglevel", "error", "-f", "concat", "-safe", "0", "-i", str(tmp_path / "list.txt"),
+                    "-fps_mode", "passthrough", *codec_args, str(out)], check=True)
+    return out
+
+
+def test_video_h264_and_dropped_frames(tmp_path):
+    """An H.264 MP4 (the usual capture format) is decoded with its time stamps; a capture
+    that dropped frames keeps their times: a lossless FFV1 video with two frames missing
+    numbers the frames after the gap by time (0-3, 6-11), so they still pair with the other
+    view's by index, and its container's frame estimate (Matroska: duration x a nominal
+    rate) is not taken for truncation."""
+    rng = np.random.default_rng(5)
+    imgs = [np.clip(rng.normal(120, 20, (64, 96)), 0, 255).astype(np.uint8) for _ in range(12)]
+    t = [0.25 * k for k in range(12)]
+    mp4 = _ffmpeg_video(tmp_path, imgs, t, "h264.mp4", ["-c:v", "libx264", "-crf", "10", "-pix_fmt", "yuv420p"])
+    fr = list(iter_frames(mp4))
+    assert [f.index for f in fr] == list(range(12))
+    assert [f.time_s for f in fr] == pytest.approx(t, abs=0.05)
+    assert max(np.abs(f.image.astype(float) - imgs[k]).mean() for k, f in enumerate(fr)) < 6.0
+    keep = [k for k in range(12) if k not in (4, 5)]
+    mkv = _ffmpeg_video(tmp_path, [imgs[k] for k in keep], [t[k] for k in keep], "gap.mkv",
+                        ["-c:v", "ffv1", "-pix_fmt", "gray"])
+    fr = list(iter_frames(mkv))
+    assert [f.index for f in fr] == keep
+    assert all(np.array_equal(f.image, imgs[k]) for k, f in zip(keep, fr))
+
+
 def test_jpeg_and_colour_to_gray(tmp_path):
     rgb = np.zeros((20, 30, 3), np.uint8)
     rgb[..., 0], rgb[..., 1], rgb[..., 2] = 200, 100, 50  # R, G, B

@@ -715,6 +715,26 @@ def _iter_file(path: Path, dtype, channel, hashes: dict | None = None
         yield path.name, _finish(_read_cv2(path, hashes), dtype, False, channel, path), None, 0
 
 
+def _frames_elapsed(t: float | None, prev_t: float | None, ivals: list[float]) -> int:
+    """Frame periods between a video frame at ``t`` and the one before at ``prev_t`` (s): 1,
+    unless the interval is a whole number (2 or more) of the frame period, within a quarter
+    of one, as where a capture dropped frames and the container kept their time; the period
+    is the median of the intervals seen so far (``ivals``, appended to; at least 3), so a
+    stream is numbered as it is read.  Without times: 1."""
+    if t is None or prev_t is None or not t > prev_t:
+        return 1
+    dt = t - prev_t
+    step = 1
+    if len(ivals) >= 3:
+        per = float(np.median(ivals[-64:]))
+        r = dt / per if per > 0 else 1.0
+        m = int(round(r))
+        if m >= 2 and abs(r - m) <= 0.25:
+            step = m
+    ivals.append(dt / step)
+    return step
+
+
 def _iter_video(path: Path, dtype, channel):
     import cv2
     cap = cv2.VideoCapture(str(path))
@@ -724,6 +744,9 @@ def _iter_video(path: Path, dtype, channel):
         stated = cap.get(cv2.CAP_PROP_FRAME_COUNT)
         stated = int(stated) if stated is not None and np.isfinite(stated) and stated > 0 else None
         k = 0
+        idx = 0                 # the frame's number: its position, or past a gap in its times, by time
+        prev_t = None
+        ivals: list[float] = []
         while True:
             ok, a = cap.read()
             if not ok or a is None:
@@ -731,14 +754,26 @@ def _iter_video(path: Path, dtype, channel):
                 # short is tolerated with a warning; more is a truncated or damaged file
                 if stated is not None and k < stated:
                     short = stated - k
-                    if short > max(1, stated // 100):
+                    # a count that is the container's estimate (duration x a nominal rate, as
+                    # Matroska's) overstates a stream whose frames are further apart: its
+                    # frames' times reaching the stated duration say it is complete
+                    fps = cap.get(cv2.CAP_PROP_FPS)
+                    per = float(np.median(ivals)) if ivals else None
+                    whole = (per is not None and prev_t is not None and fps and np.isfinite(fps) and fps > 0
+                             and prev_t + 2.0 * per >= stated / fps)
+                    if short > max(1, stated // 100) and not whole:
                         raise InputError(f"video ends after {k} of the {stated} frames its header states "
                                          f"(truncated or damaged)", path=path, frame=k)
-                    log.warning("%s: %d frame(s) decoded, the header states %d", path, k, stated)
+                    (log.info if whole else log.warning)(
+                        "%s: %d frame(s) decoded, the header states %d%s", path, k, stated,
+                        " (an estimate: the frames' times reach its duration)" if whole else "")
                 break
             t_ms = cap.get(cv2.CAP_PROP_POS_MSEC)
             t = float(t_ms) / 1000.0 if t_ms is not None and np.isfinite(t_ms) and (k == 0 or t_ms > 0) else None
-            yield f"{path.name}#{k}", _finish(a, dtype, False, channel, path, k), t, k
+            if k > 0:
+                idx += _frames_elapsed(t, prev_t, ivals)
+            yield f"{path.name}#{k}", _finish(a, dtype, False, channel, path, k), t, idx
+            prev_t = t
             k += 1
         if k == 0:
             raise InputError("video holds no decodable frame", path=path)
