@@ -156,6 +156,23 @@ def test_video_h264_and_dropped_frames(tmp_path):
     assert all(np.array_equal(f.image, imgs[k]) for k, f in zip(keep, fr))
 
 
+def test_video_16_bit_lossless(tmp_path):
+    """A lossless 16-bit gray video (FFV1 ``gray16le``, an X-ray archive's format and what the
+    lossy-frames warning recommends) is read with its 16-bit samples: OpenCV's default BGR
+    conversion had cut them to 8 bits (12-bit data read as 0, 0, 1, 1 ... for 0, 112, 224,
+    336).  An 8-bit gray FFV1 stays 8-bit."""
+    stack = [(np.arange(48 * 64).reshape(48, 64) * 7 % 4096).astype(np.uint16) * 16 + k for k in range(4)]
+    v16 = _ffmpeg_video(tmp_path, stack, [0.25 * k for k in range(4)], "g16.mkv",
+                        ["-c:v", "ffv1", "-pix_fmt", "gray16le"])
+    fr = list(iter_frames(v16))
+    assert all(f.image.dtype == np.uint16 and np.array_equal(f.image, stack[k]) for k, f in enumerate(fr))
+    assert len(fr) == 4 and [f.time_s for f in fr] == pytest.approx([0.0, 0.25, 0.5, 0.75], abs=0.05)
+    v8 = _ffmpeg_video(tmp_path, [(a >> 8).astype(np.uint8) for a in stack], [0.25 * k for k in range(4)], "g8.mkv",
+                       ["-c:v", "ffv1", "-pix_fmt", "gray"])
+    fr = list(iter_frames(v8))
+    assert fr[1].image.dtype == np.uint8 and np.array_equal(fr[1].image, (stack[1] >> 8).astype(np.uint8))
+
+
 def test_jpeg_and_colour_to_gray(tmp_path):
     rgb = np.zeros((20, 30, 3), np.uint8)
     rgb[..., 0], rgb[..., 1], rgb[..., 2] = 200, 100, 50  # R, G, B

@@ -735,9 +735,28 @@ def _frames_elapsed(t: float | None, prev_t: float | None, ivals: list[float]) -
     return step
 
 
-def _iter_video(path: Path, dtype, channel):
+def _open_video(path: Path):
+    """``cv2.VideoCapture`` on ``path``; a stream of 16-bit gray samples (FFV1 or raw
+    ``gray16le``, as a lossless X-ray archive holds them) is opened without OpenCV's BGR
+    conversion, which would cut it to 8 bits."""
     import cv2
     cap = cv2.VideoCapture(str(path))
+    if cap.isOpened():
+        v = int(cap.get(cv2.CAP_PROP_CODEC_PIXEL_FORMAT) or 0)
+        if bytes((v >> (8 * i)) & 255 for i in range(4)) == b"Y1\x00\x10":      # FFmpeg's gray16le tag
+            cap.release()
+            level = cv2.utils.logging.getLogLevel()
+            cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)   # "BGR conversion turned OFF"
+            try:
+                cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG, [cv2.CAP_PROP_CONVERT_RGB, 0])
+            finally:
+                cv2.utils.logging.setLogLevel(level)
+    return cap
+
+
+def _iter_video(path: Path, dtype, channel):
+    import cv2
+    cap = _open_video(path)
     try:
         if not cap.isOpened():
             raise InputError("cannot open video (corrupt file or unsupported codec)", path=path)
