@@ -198,6 +198,12 @@ def test_dicom_single_multiframe_and_monochrome1(tmp_path):
     assert len(frames) == 3 and np.array_equal(frames[1].image, stack[1])
     assert frames[2].time_s == pytest.approx(0.08)
     assert count_frames(tmp_path / "multi.dcm") == 3
+    from pydicom import dcmread
+    ds = dcmread(tmp_path / "multi.dcm")
+    del ds.FrameTime
+    ds.CineRate = 15                       # frames per second, the Cine module's other form
+    ds.save_as(tmp_path / "cine.dcm")
+    assert [f.time_s for f in iter_frames(tmp_path / "cine.dcm")] == pytest.approx([0.0, 1 / 15, 2 / 15])
     b = _ramp(dtype=np.uint8)
     _write_dicom(tmp_path / "inv.dcm", b, photometric="MONOCHROME1")
     assert np.array_equal(read_image(tmp_path / "inv.dcm"), 255 - b)

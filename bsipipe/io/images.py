@@ -603,7 +603,8 @@ def _monochrome1(a: np.ndarray, ds) -> np.ndarray:
 
 
 def _dicom_frame_times(ds, n: int) -> list[float | None]:
-    """Frame times in s from FrameTimeVector (ms increments) or FrameTime (ms); else, in an
+    """Frame times in s from FrameTimeVector (ms increments), FrameTime (ms) or CineRate
+    (frames/s); else, in an
     enhanced multi-frame file (Enhanced XA, XRF), from each frame's FrameContentSequence
     (FrameAcquisitionDateTime, else FrameReferenceDateTime) where every frame has one and they
     increase, relative to the first; else None.  A single-frame file has no time of its own
@@ -616,6 +617,12 @@ def _dicom_frame_times(ds, n: int) -> list[float | None]:
     ft = getattr(ds, "FrameTime", None)
     if ft is not None and float(ft) > 0:
         return [i * float(ft) / 1000.0 for i in range(n)]
+    rate = getattr(ds, "CineRate", None)          # the Cine module's frames per second, without FrameTime
+    try:
+        if rate is not None and float(rate) > 0:
+            return [i / float(rate) for i in range(n)]
+    except (TypeError, ValueError):
+        pass
     per = getattr(ds, "PerFrameFunctionalGroupsSequence", None)
     if per is not None and len(per) == n:
         for kw in ("FrameAcquisitionDateTime", "FrameReferenceDateTime"):
