@@ -165,3 +165,23 @@ def test_window_source_reads_a_view_once_per_new_set_of_windows(tmp_path):
     src.candidates("cam1", {4: [wc]})
     assert src.n_reads == 2 and len(src.candidates("cam1", {4: [wc]})[(4, wc)]["x_px"]) == 0
     assert src.candidates("cam1", {9: [wa]})[(9, wa)] is None and src.n_reads == 3
+
+
+def test_window_source_keeps_to_a_given_region(tmp_path):
+    """With a view's given region of interest (a mask), track-capture's re-search finds only
+    the beads inside it: the bead outside the region is not a candidate, the one inside is."""
+    from bsipipe.imaging.detect import FieldOfView
+    from bsipipe.imaging.track_effects import WindowSource
+    d = tmp_path / "v"
+    d.mkdir()
+    xy = np.array([[100.3, 120.6], [300.2, 310.7]])
+    img = _render(xy, seed=1)
+    cv2.imwrite(str(d / "f0.png"), img)
+    mask = np.zeros(img.shape[:2], bool)
+    mask[:, :200] = True                         # the left part: the first bead only
+    wa, wb = ("a", 100, 120, 10), ("b", 300, 311, 10)
+    got = WindowSource({"cam1": str(d)}, 4.0).candidates("cam1", {0: [wa, wb]})
+    assert len(got[(0, wa)]["x_px"]) == 1 and len(got[(0, wb)]["x_px"]) == 1
+    roi = {"cam1": FieldOfView(img.shape[:2], region=mask, given=True)}
+    got = WindowSource({"cam1": str(d)}, 4.0, rois=roi).candidates("cam1", {0: [wa, wb]})
+    assert len(got[(0, wa)]["x_px"]) == 1 and len(got[(0, wb)]["x_px"]) == 0
