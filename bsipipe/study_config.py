@@ -352,7 +352,7 @@ def plan_study(study: StudyConfig) -> list[StagePlan]:
 
 def _plan_trial(study: StudyConfig, trial: Trial) -> list[StagePlan]:
     from .commands.calibrate import CalibrateConfig
-    from .commands.track import TrackConfig
+    from .commands.track import TrackConfig, map_roi_masks, roi_masks
     from .config import FitConfig
 
     s, base, src = trial.sections, study.base, study.path
@@ -416,13 +416,9 @@ def _plan_trial(study: StudyConfig, trial: Trial) -> list[StagePlan]:
     if isinstance(trk.get("seeds"), str):
         trk["seeds"] = _abs(trk["seeds"], base)
     if isinstance(trk.get("detection"), dict) and "roi" in trk["detection"]:
-        # a mask image's path (any string but auto and none), relative to the study config
-        def roi_path(r):
-            return _abs(r, base) if isinstance(r, str) and r not in ("auto", "none") else r
-        r = trk["detection"]["roi"]
-        trk["detection"] = {**trk["detection"], "roi": ({k: roi_path(x) for k, x in r.items()}
-                                                        if isinstance(r, dict) and "radius_px" not in r
-                                                        else roi_path(r))}
+        # mask images' paths, relative to the study config
+        trk["detection"] = {**trk["detection"],
+                            "roi": map_roi_masks(trk["detection"]["roi"], lambda p: _abs(p, base))}
     if "calibration" in trk:
         raise InputError("the study's track stage reads calibrate's calibration.json; remove this key",
                          path=src, key=f"{trial.key('track')}.calibration")
@@ -434,9 +430,7 @@ def _plan_trial(study: StudyConfig, trial: Trial) -> list[StagePlan]:
     cf = (str(cfgdir / "track.yaml"), _yaml_text("bsipipe track config", trk_cfg.model_dump(mode="json")))
     argv, call = command("track", [cf[0]], {}, [], cf)
     trk_inputs = [] if twin is not None else [*trk_cfg.views.values(), *([trk_cfg.seeds] if trk_cfg.seeds else [])]
-    rois = trk_cfg.detection.roi
-    trk_inputs += [r for r in (rois.values() if isinstance(rois, dict) else [rois])
-                   if isinstance(r, str) and r not in ("auto", "none")]          # mask images
+    trk_inputs += roi_masks(trk_cfg.detection.roi)
     add("track", ["synth", "calibrate"] if twin is not None else ["calibrate"], trk_inputs, argv, call, cf)
 
     # register -------------------------------------------------------------------------------------

@@ -145,18 +145,14 @@ class TrackConfig(StrictModel):
     @field_validator("diameter_px")
     @classmethod
     def _diameters_per_view(cls, v, info):
-        views = info.data.get("views")
-        if isinstance(v, dict) and views is not None and set(v) != set(views):
-            raise ValueError(f"a diameter per view must give every view and only them: views "
-                             f"{', '.join(views)}; diameters for {', '.join(v)}")
+        if isinstance(v, dict) and info.data.get("views") is not None:
+            _every_view("a diameter", "diameters", v, info.data["views"])
         return v
 
     @model_validator(mode="after")
     def _rois_per_view(self):
-        roi = self.detection.roi
-        if isinstance(roi, dict) and set(roi) != set(self.views):
-            raise ValueError(f"detection.roi: a region of interest per view must give every view and only them: "
-                             f"views {', '.join(self.views)}; regions for {', '.join(roi)}")
+        if isinstance(self.detection.roi, dict):
+            _every_view("detection.roi: a region of interest", "regions", self.detection.roi, self.views)
         return self
 
     @field_validator("views")
@@ -166,6 +162,13 @@ class TrackConfig(StrictModel):
             if not k or "," in k or "=" in k:
                 raise ValueError(f"bad view name {k!r}")
         return v
+
+
+def _every_view(what: str, plural: str, given: dict, views) -> None:
+    """A value per view (a config's dict) must name every view and only them."""
+    if set(given) != set(views):
+        raise ValueError(f"{what} per view must give every view and only them: views {', '.join(views)}; "
+                         f"{plural} for {', '.join(given)}")
 
 
 def _parse_views(values: Sequence[str]) -> dict[str, str]:
@@ -183,10 +186,34 @@ def _parse_views(values: Sequence[str]) -> dict[str, str]:
     return out
 
 
+def _per_view_option(option: str, key: str, form: str, values: Sequence[str], parse, name_of):
+    """A command-line option given once for every view (given more than once, the last counts)
+    or as ``NAME=FORM`` per view (repeated): ``(value for every view or None, {view: value})``.
+    ``name_of(s)``: the view ``s`` names (None: a value for every view); ``parse(text, s)``
+    reads a value.  A view given twice, an empty name, or both forms mixed: an error naming
+    the option."""
+    named: dict = {}
+    plain = []
+    for s in values:
+        k = name_of(s)
+        if k is None:
+            plain.append(s)
+            continue
+        if not k:
+            raise InputError(f"{option} {s!r}: expected NAME={form}", key=key)
+        if k in named:
+            raise InputError(f"{option} {k!r} given twice", key=key)
+        named[k] = parse(s.split("=", 1)[1].strip(), s)
+    if named and plain:
+        raise InputError(f"{option}: give one {form} for every view, or NAME={form} for each view, not both",
+                         key=key)
+    return (parse(plain[-1].strip(), plain[-1]) if plain else None), named
+
+
 def _parse_diameters(values: Sequence[str]) -> float | dict[str, float] | None:
-    """``--diameter-px``: one ``D`` for every view (given more than once, the last counts), or
-    ``NAME=D`` per view (repeated); None when not given.  A value that is not a positive number,
-    a view given twice, or both forms mixed is an error naming the option."""
+    """``--diameter-px``: one ``D`` for every view, or ``NAME=D`` per view
+    (:func:`_per_view_option`); None when not given.  A value that is not a positive number is
+    an error naming the option."""
     if not values:
         return None
 
@@ -200,22 +227,9 @@ def _parse_diameters(values: Sequence[str]) -> float | dict[str, float] | None:
                              "view)", key="diameter_px")
         return x
 
-    named = ["=" in s for s in values]
-    if not any(named):
-        # repeated, the last one counts (as for any single-valued option)
-        return number(values[-1].strip(), values[-1])
-    if not all(named):
-        raise InputError("--diameter-px: give one D for every view, or NAME=D for each view, not both",
-                         key="diameter_px")
-    out: dict[str, float] = {}
-    for s in values:
-        k, x = (a.strip() for a in s.split("=", 1))
-        if not k:
-            raise InputError(f"--diameter-px {s!r}: expected NAME=D", key="diameter_px")
-        if k in out:
-            raise InputError(f"--diameter-px {k!r} given twice", key="diameter_px")
-        out[k] = number(x, s)
-    return out
+    one, named = _per_view_option("--diameter-px", "diameter_px", "D", values, number,
+                                  lambda s: s.split("=", 1)[0].strip() if "=" in s else None)
+    return named or one
 
 
 def _parse_roi(text: str):
@@ -239,25 +253,15 @@ def _parse_roi(text: str):
 
 
 def _parse_rois(values: Sequence[str], views: dict):
-    """``--roi``: one region for every view (given more than once, the last counts), or
-    ``NAME=REGION`` per view (repeated; NAME a view's name)."""
-    named: dict = {}
-    plain = []
-    for s in values:
+    """``--roi``: one region for every view, or ``NAME=REGION`` per view
+    (:func:`_per_view_option`; NAME a view's name: a mask's path may hold an ``=``)."""
+    def name_of(s: str) -> str | None:
         k, _, rest = s.partition("=")
-        if rest and k.strip() in views:
-            k = k.strip()
-            if k in named:
-                raise InputError(f"--roi {k!r} given twice", key="roi")
-            named[k] = _parse_roi(rest)
-        else:
-            plain.append(s)
-    if named and plain:
-        raise InputError("--roi: give one region for every view, or NAME=REGION for each view, not both", key="roi")
-    if named:
-        # views not named keep the automatic field
-        return {v: named.get(v, "auto") for v in views}
-    return _parse_roi(plain[-1])
+        return k.strip() if rest and k.strip() in views else None
+
+    one, named = _per_view_option("--roi", "roi", "REGION", values, lambda text, s: _parse_roi(text), name_of)
+    # views not named keep the automatic field
+    return {v: named.get(v, "auto") for v in views} if named else one
 
 
 def build_config(config_path=None, *, view=(), calibration=None, polarity=None, diameter_px=None, seeds=None,
@@ -296,15 +300,30 @@ def build_config(config_path=None, *, view=(), calibration=None, polarity=None, 
     if base is not None:
         def fix(p):
             return None if p is None else str(p if os.path.isabs(p) else base / p)
-        def fix_roi(r):
-            return fix(r) if isinstance(r, str) and r not in ("auto", "none") else r
-
-        roi = cfg.detection.roi
-        roi = {k: fix_roi(r) for k, r in roi.items()} if isinstance(roi, dict) else fix_roi(roi)
+        roi = map_roi_masks(cfg.detection.roi, fix)
         cfg = cfg.model_copy(update={"views": {k: fix(v) for k, v in cfg.views.items()},
                                      "calibration": fix(cfg.calibration), "seeds": fix(cfg.seeds),
                                      "detection": cfg.detection.model_copy(update={"roi": roi})})
     return cfg
+
+
+def _is_mask(r) -> bool:
+    """Whether a region of interest is a mask image's path (any string but auto and none)."""
+    return isinstance(r, str) and r not in ("auto", "none")
+
+
+def map_roi_masks(roi, fn):
+    """A ``detection.roi`` value (validated or as read from YAML) with each mask image's path
+    passed through ``fn``: one region for every view, or a dict of them per view."""
+    if isinstance(roi, dict) and "radius_px" not in roi:          # per view (not a circle's keys)
+        return {k: map_roi_masks(r, fn) for k, r in roi.items()}
+    return fn(roi) if _is_mask(roi) else roi
+
+
+def roi_masks(roi) -> list[str]:
+    """The mask images' paths a ``detection.roi`` value names."""
+    vals = roi.values() if isinstance(roi, dict) and "radius_px" not in roi else [roi]
+    return [r for r in vals if _is_mask(r)]
 
 
 def _roi_per_view(cfg) -> dict:
@@ -320,18 +339,14 @@ def _given_roi(cfg) -> bool:
 
 def _resolve_rois(cfg, shapes: dict, config_path) -> dict:
     """Each view's region of interest for the tracker: "auto", "none", or a
-    :class:`~bsipipe.imaging.detect.FieldOfView` built from a given circle or mask image.
-    A view named that is not tracked, a view left out, a circle outside the frame, a mask of
-    another size than the frames or with no pixel set: an error naming the file or key."""
+    :class:`~bsipipe.imaging.detect.FieldOfView` built from a given circle or mask image (the
+    config names every view: :meth:`TrackConfig._rois_per_view`).  A circle outside the frame,
+    a mask of another size than the frames or with no pixel set: an error naming the file or
+    key."""
     from ..imaging.detect import FieldOfView
     from ..io.images import iter_frames
-    per = _roi_per_view(cfg)
-    if set(per) != set(cfg.views):
-        raise InputError(f"a region of interest per view must give every view and only them: views "
-                         f"{', '.join(cfg.views)}; regions for {', '.join(per)}", path=config_path,
-                         key="detection.roi")
     out = {}
-    for v, r in per.items():
+    for v, r in _roi_per_view(cfg).items():
         shape = shapes.get(v)
         if isinstance(r, str) and r in ("auto", "none"):
             out[v] = r
@@ -917,11 +932,12 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         if not (os.path.exists(p) or any(c in p for c in "*?[")):
             raise InputError(f"view {v}: no such file or folder", path=p)
     # each view's first frame, for the seeds' check, the polarity and the diameter (then let go)
+    given_roi = _given_roi(cfg)
     firsts = (_first_frames(cfg.views, cfg.channel)
               if cfg.seeds or cfg.polarity == "auto" or cfg.diameter_px is None or cfg.calibration
-              or _given_roi(cfg) else {})
+              or given_roi else {})
     shapes = {v: None if im is None else im.shape for v, im in firsts.items()}
-    rois = _resolve_rois(cfg, shapes, config_path) if _given_roi(cfg) else _roi_per_view(cfg)
+    rois = _resolve_rois(cfg, shapes, config_path) if given_roi else _roi_per_view(cfg)
     rig = None
     if cfg.calibration:
         rig, pair = _read_calibration(cfg.calibration, views)
