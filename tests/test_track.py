@@ -1115,6 +1115,7 @@ def test_cli_track_given_region_of_interest(tmp_path):
     per, j = run("--roi", f"cam2={tmp_path / 'left.png'}", name="mask")
     assert near(per["cam1"], beads) and near(per["cam2"], beads[beads[:, 0] < 110])
     assert j["views"]["cam2"]["field_of_view"]["region_px"] == 200 * 110
+    assert str(tmp_path / "left.png") in j["provenance"]["inputs_sha256"]       # the mask is an input
     assert "given" not in j["views"]["cam1"]["field_of_view"]
     # the same in a config: per view, the mask's path relative to the config's folder
     (tmp_path / "cfg").mkdir()

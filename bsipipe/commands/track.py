@@ -1386,7 +1386,8 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         rs.add_figure("overlay.png", overlay_figure(first_images, table, {v: int(table.loc[table["view"] == v, "frame"].min())
                                                                            for v in first_images},
                                                     seed_df, per_view_d, regions), tight=False)
-    inputs = [p for p in cfg.views.values()] + [p for p in (cfg.calibration, cfg.seeds) if p]
+    inputs = ([p for p in cfg.views.values()] + [p for p in (cfg.calibration, cfg.seeds) if p]
+              + roi_masks(cfg.detection.roi))
     result["provenance"] = provenance(cfg, inputs, command="track", known_hashes=frame_hashes)
     rs.add_json("track.json", result)
     rs.commit()
