@@ -163,6 +163,11 @@ def _name_numbers(files: list[Path]) -> list[int] | None:
     return [int(m.group(2)) for m in parts]
 
 
+#: A frame interval counts as a whole number of frame periods (frames the recorder did not
+#: store in between) within this fraction of a period (:func:`time_indices`, :func:`_frames_elapsed`).
+_PERIOD_TOLERANCE = 0.25
+
+
 def time_indices(times) -> list[int] | None:
     """Frame numbers from a source's own time stamps where they skip frames: each interval
     within a quarter of a whole number of the median interval, some of them two or more (a
@@ -176,7 +181,7 @@ def time_indices(times) -> list[int] | None:
         return None
     m = dt / period
     r = np.rint(m)
-    if (r < 1).any() or (np.abs(m - r) > 0.25).any() or not (r >= 2).any():
+    if (r < 1).any() or (np.abs(m - r) > _PERIOD_TOLERANCE).any() or not (r >= 2).any():
         return None
     return [0, *np.cumsum(r).astype(int).tolist()]
 
@@ -581,6 +586,8 @@ def _dicom_frames(ds, path: Path) -> Iterator[np.ndarray]:
     k = 0
     try:
         for a in iter_pixels(str(path)):
+            if k >= n:
+                raise InputError(f"DICOM pixel data holds more frames than NumberOfFrames ({n})", path=path)
             if a.ndim != 2 + (spp > 1):
                 raise InputError(f"unexpected DICOM frame shape {a.shape}", path=path, frame=k if n > 1 else None)
             yield _monochrome1(a, ds) if mono1 else a
@@ -591,6 +598,8 @@ def _dicom_frames(ds, path: Path) -> Iterator[np.ndarray]:
         short = f" (the pixel data ends before frame {k} of the {n} NumberOfFrames states?)" if 0 < k < n else ""
         raise InputError(f"cannot decode DICOM pixel data{short}: {e}", path=path,
                          frame=k if n > 1 else None) from None
+    if k < n:
+        raise InputError(f"DICOM pixel data holds {k} frame(s), NumberOfFrames says {n}", path=path)
 
 
 def _monochrome1(a: np.ndarray, ds) -> np.ndarray:
@@ -710,14 +719,9 @@ def _iter_file(path: Path, dtype, channel, hashes: dict | None = None
         times = _dicom_frame_times(ds, n)
         # a FrameTimeVector that skips a frame period: the frames after keep their times' numbers
         ks = time_indices(times) or range(n)
-        k = -1
         for k, a in enumerate(_dicom_frames(ds, path)):
-            if k >= n:
-                raise InputError(f"DICOM pixel data holds more frames than NumberOfFrames ({n})", path=path)
             name = path.name if n == 1 else f"{path.name}#{k}"
             yield name, _finish(a, dtype, True, channel, path, k if n > 1 else None), times[k], ks[k]
-        if k + 1 < n:
-            raise InputError(f"DICOM pixel data holds {k + 1} frame(s), NumberOfFrames says {n}", path=path)
     else:
         yield path.name, _finish(_read_cv2(path, hashes), dtype, False, channel, path), None, 0
 
@@ -736,7 +740,7 @@ def _frames_elapsed(t: float | None, prev_t: float | None, ivals: list[float]) -
         per = float(np.median(ivals[-64:]))
         r = dt / per if per > 0 else 1.0
         m = int(round(r))
-        if m >= 2 and abs(r - m) <= 0.25:
+        if m >= 2 and abs(r - m) <= _PERIOD_TOLERANCE:
             step = m
     ivals.append(dt / step)
     return step
