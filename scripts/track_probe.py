@@ -16,7 +16,10 @@ frame: automatic mode's whole-frame noise statistics are misled by it), ``noise2
 frames), ``grid`` (anti-scatter grid stripes, period 3.3 px, +-3 grey levels), ``glare``
 (veiling glare: 30 % of the light spread over ~50 px), ``abc`` (automatic brightness control:
 gain -30 % and offset +20 over the middle third), ``jpeg`` (JPEG files, OpenCV's default
-quality 95), ``mp4`` (an MPEG-4 part 2 video per view, lossy), ``mjpg`` (a Motion-JPEG AVI per view).  The twin is the track benchmark's
+quality 95), ``mp4`` (an MPEG-4 part 2 video per view, lossy), ``mjpg`` (a Motion-JPEG AVI per view), ``blank`` (missed exposures: every 23rd frame
+of cam2 dark noise only), ``burnin`` (text burned in by the C-arm's video output: a frame
+counter and clock in the corners outside the field, a patient line, kV/mA, a laterality
+letter "L" inside the field).  The twin is the track benchmark's
 (``results/bench_cache/twin200``: 200 frames per view at 4 frames/s, its seeds and true
 cameras); the perturbed frames go to ``/tmp/bsipipe_probe/EFFECT`` and are tracked by the
 current code with ``bsipipe track`` (``--old``: the output goes to ``track_old``, for a
@@ -156,6 +159,29 @@ def abc(v, imgs):
         out.append(np.clip(np.rint(im * (1 - 0.3 * a) + 20 * a), 0, 255).astype(np.uint8))
     return out
 
+def blank(v, imgs):
+    # missed exposures (pulsed fluoroscopy): every 23rd frame of cam2 only dark noise, no picture
+    if v != "cam2": return imgs
+    out = list(imgs)
+    for k in range(11, len(imgs), 23):
+        out[k] = np.clip(np.rint(rng.normal(12, 2, imgs[k].shape)), 0, 255).astype(np.uint8)
+    return out
+
+def burnin(v, imgs):
+    # text burned into the frames by the C-arm's video output, as its monitor shows it: a frame
+    # counter and a clock in the corners outside the circular field (white and dark), a patient
+    # line, and the letter "L" over the picture (where the field's edge is, in the twin at about 95 px)
+    out = []
+    for k, im in enumerate(imgs):
+        c = im.copy()
+        cv2.putText(c, f"FR {k:04d}", (12, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.7, 255, 2, cv2.LINE_AA)
+        cv2.putText(c, f"T {k / 4:07.2f}s", (860, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.6, 255, 1, cv2.LINE_AA)
+        cv2.putText(c, "SHEEP-1  2026-11-22", (12, 1010), cv2.FONT_HERSHEY_SIMPLEX, 0.5, 200, 1, cv2.LINE_AA)
+        cv2.putText(c, "kV 70 mA 2.1", (860, 1010), cv2.FONT_HERSHEY_SIMPLEX, 0.5, 40, 1, cv2.LINE_AA)
+        cv2.putText(c, "L", (200, 300), cv2.FONT_HERSHEY_SIMPLEX, 1.0, 255, 2, cv2.LINE_AA)
+        out.append(c)
+    return out
+
 def same(v, imgs):
     return imgs
 
@@ -165,7 +191,7 @@ FORMATS = {"jpeg": ".jpg", "mp4": ".mp4", "mjpg": ".avi"}
 
 EFFECTS = {"grid": grid, "glare": glare, "abc": abc, "jpeg": same, "mp4": same, "mjpg": same, "log": logimg, "invert": invert, "vignette": vignette, "noise2": noise2, "bits16": bits16, "blur": blur, "dup": dup,
            "dust2": dust2, "late": late, "none": lambda v, i: i, "dust": dust, "lag05": lag(0.5), "flicker": flicker, "interlace": interlace,
-           "saltpepper": saltpepper}
+           "saltpepper": saltpepper, "blank": blank, "burnin": burnin}
 
 
 def err3d(synth: Path, track: Path) -> None:

@@ -1215,3 +1215,42 @@ def test_overlay_draws_the_region_searched():
     fig = overlay_figure({"a": img, "b": img}, table, {"a": 0, "b": 0}, None, 4.0)
     assert not [p for p in fig.axes[0].patches if isinstance(p, Circle) and p.get_radius() == 30.0]
     assert "region of interest" not in fig.axes[1].get_title()
+
+
+def test_cli_names_frames_without_their_picture(tmp_path):
+    """``bsipipe track`` on frames where two frames are dark noise only (missed exposures of
+    pulsed fluoroscopy): a ``frames-without-markers`` warning names them, the markers are
+    followed across them; a marker hidden in one frame while the others are seen is not such
+    a frame, nor are frames before the first or after the last in which markers were found."""
+    import cv2
+    frames, truth = crossing_sequence(n=14)
+    rng = np.random.default_rng(3)
+    for k in (4, 9):
+        frames[k] = np.clip(np.rint(rng.normal(12, 2, frames[k].shape)), 0, 255).astype(frames[k].dtype)
+    d = tmp_path / "frames"
+    d.mkdir()
+    for k, img in enumerate(frames):
+        cv2.imwrite(str(d / f"f{k:03d}.png"), img)
+    seeds = tmp_path / "seeds.csv"
+    pd.DataFrame([("cam1", m, *truth[0, j]) for j, m in enumerate("ABC")],
+                 columns=["view", "marker", "x_px", "y_px"]).to_csv(seeds, index=False)
+    out = tmp_path / "out"
+    r = CliRunner().invoke(cli, ["-q", "track", "--view", f"cam1={d}", "--seeds", str(seeds), "--diameter-px", "4",
+                                 "--fps", "2", "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    w = [w for w in json.loads((out / "track.json").read_text())["warnings"] if w["code"] == "frames-without-markers"]
+    assert len(w) == 1 and w[0]["frames"] == {"cam1": [4, 9]}
+    t = pd.read_csv(out / "markers2d.csv")
+    j = t["marker"].map({"A": 0, "B": 1, "C": 2}).to_numpy()
+    err = np.hypot(t["x_px"] - truth[t["frame"], j, 0], t["y_px"] - truth[t["frame"], j, 1])
+    assert not t.loc[t["frame"].isin([4, 9]), "found"].any()
+    assert t.loc[t["frame"] > 9, "found"].sum() >= 10 and err[t["found"].to_numpy()].max() < 0.5
+
+    from bsipipe.commands.track import _frames_without_markers
+    tab = pd.DataFrame({"view": "cam1", "frame": np.repeat(np.arange(6), 2), "marker": ["A", "B"] * 6,
+                        "status": "found",
+                        "found": [False, False, True, True, True, False, False, False, True, True, False, False]})
+    # frame 0 before any marker, frame 5 after the last: not counted; frame 2 one marker seen
+    assert _frames_without_markers(tab) == {"cam1": [3]}
+    tab.loc[tab["frame"] == 3, "status"] = "missing-frame"
+    assert _frames_without_markers(tab) == {}

@@ -847,6 +847,26 @@ def _point_sds(points3d: pd.DataFrame, table: pd.DataFrame, vpair, pair) -> None
             points3d[f"sd_{a}_mm{suffix}"] = out[:, k]
 
 
+def _frames_without_markers(table: pd.DataFrame) -> dict[str, list[int]]:
+    """Per view, the frames in which no marker was found although at least two were found in
+    an earlier and in a later frame: a frame without its picture (a missed exposure of pulsed
+    fluoroscopy, a black or flashed frame from the grabber) rather than markers hidden one by
+    one.  Frames missing from the numbering (status ``missing-frame``) are not counted."""
+    out = {}
+    for v, g in table.groupby("view", sort=False):
+        g = g[g["status"] != "missing-frame"]
+        if g["marker"].nunique() < 2:
+            continue
+        n = g.groupby("frame")["found"].sum()
+        seen = n.index[n.to_numpy() >= 2]
+        if len(seen) < 2:
+            continue
+        empty = n.index[(n.to_numpy() == 0) & (n.index > seen[0]) & (n.index < seen[-1])]
+        if len(empty):
+            out[str(v)] = [int(f) for f in empty]
+    return out
+
+
 def _missing_frame_rows(table: pd.DataFrame, missing: dict[str, list[int]], fps: float | None,
                         views: list[str]) -> pd.DataFrame:
     """``table`` with a row for every marker of a view in each of its ``missing`` frames (not
@@ -1082,6 +1102,18 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
               "numbers and pair with the other view's frames of the same number",
             log, frames={v: m for v, m in missing.items()}))
         table = _missing_frame_rows(table, missing, cfg.fps, views)
+    empty = _frames_without_markers(table)
+    if empty:
+        from ..quality import warning
+        warnings.append(warning(
+            "frames-without-markers",
+            "track: frames in which no marker was found, between frames where they were ("
+            + "; ".join(f"{v}: {len(m)} frame(s), {', '.join(map(str, m[:10]))}{', ...' if len(m) > 10 else ''}"
+                        for v, m in empty.items())
+            + "): a frame without its picture (a missed exposure, a black or flashed frame) more likely than "
+              "every marker hidden at once; the markers were followed across them (lost and refound events), "
+              "the frames have no 3-D point from that view",
+            log, frames=empty))
     last = {v: int(table.loc[table["view"] == v, "frame"].max()) for v in views}
     if len(set(counts.values())) > 1 and len(set(last.values())) > 1:
         # e.g. a video cut short within its header's tolerance, or a frame file missing: the
