@@ -243,6 +243,9 @@ def synth(config, out) -> None:
               help="trackpy: detect exactly as trackpy.locate(diameter, invert=dark) does, to reproduce a trackpy "
                    "user's features (odd --diameter-px, no --seeds; implies --method centroid).")
 @click.option("--minmass", type=click.FloatRange(min=0), help="With --parity trackpy: trackpy's minmass (default 0).")
+@click.option("--background", type=click.Choice(["edge", "plane"]),
+              help="Taken from under a marker before its centre is measured: edge (default: a plane, or a profile "
+                   "across a bone's or an instrument's edge where the plane leaves structure) or plane.")
 @click.option("--roi", "roi", multiple=True, metavar="REGION|NAME=REGION",
               help="Where markers are looked for: auto (the intensifier's circular field, default), none (the "
                    "whole frame), a circle X,Y,R in px, or a mask image (its non-zero pixels); NAME=REGION for "

@@ -38,12 +38,13 @@ def bead_camera(size: int) -> Camera:
 
 def render_beads(centres_px: np.ndarray, diameter_px: float, size: int, rng, *, field=None, noise: bool = True,
                  bright: bool = False, skip=(), detector: Detector | None = None, quantize: bool = True,
-                 quanta_per_px: float | None = None) -> np.ndarray:
+                 quanta_per_px: float | None = None, background: np.ndarray | None = None) -> np.ndarray:
     """Steel spheres whose centres project to ``centres_px`` (N, 2), ``diameter_px`` across,
     through the twin's detector chain with its defaults (blur, veiling glare, heel effect,
     vignetting, video gamma, quantum and read noise, 8 bits; ``quanta_per_px`` other than
     the default).  ``skip``: indices not drawn; ``noise=False`` and ``quantize=False`` give
-    the expected image itself."""
+    the expected image itself; ``background`` (size, size): the transmission of what lies
+    behind the beads (bone, an instrument), 1 where nothing does."""
     cam = bead_camera(size) if field is None else field.camera
     field = RayField(cam) if field is None else field
     r_mm = diameter_px * Z_MM / F_PX / 2
@@ -53,6 +54,8 @@ def render_beads(centres_px: np.ndarray, diameter_px: float, size: int, rng, *, 
             continue
         X = [(u - (size - 1) / 2) * Z_MM / F_PX, (v - (size - 1) / 2) * Z_MM / F_PX, Z_MM]
         apply_patch(T, sphere_patch(field, X, r_mm, 1.5, ss=8))
+    if background is not None:
+        T *= np.asarray(background, np.float32)
     det = detector or Detector((size, size), ((size - 1) / 2, (size - 1) / 2), 0.49 * size)
     if quanta_per_px is not None:
         det.quanta_per_px = quanta_per_px
@@ -762,3 +765,88 @@ def test_a_constant_fill_region_is_left_out_of_the_noise_statistics(dtype):
     assert (near < 0.5).all()
     assert len(found) == len(alone) == 8
     np.testing.assert_allclose(np.sort(alone["x_px"].to_numpy() + 240), np.sort(found["x_px"].to_numpy()), atol=1e-3)
+
+
+def _edge_scene(kind: str, c, size: int = 64, angle_deg: float = 20.0, off_px: float = 2.0) -> np.ndarray:
+    """The transmission behind a bead centred at ``c``: ``step``, a bone's edge (30 % less
+    light beyond it, over about 2 px) or ``line``, a dark line 1.2 px sd wide (25 %), running
+    at ``angle_deg`` ``off_px`` from the bead's centre; ``flat``: nothing."""
+    yy, xx = np.mgrid[:size, :size].astype(float)
+    a = math.radians(angle_deg)
+    u = (xx - c[0]) * -math.sin(a) + (yy - c[1]) * math.cos(a) - off_px
+    if kind == "step":
+        return 1 - 0.3 * (0.5 + 0.5 * np.tanh(u))
+    if kind == "line":
+        return 1 - 0.25 * np.exp(-u ** 2 / (2 * 1.2 ** 2))
+    return np.ones_like(xx)
+
+
+def test_edge_background_as_plainly_computed():
+    """The edge background's knots (normal equations summed pixel by pixel) against a plain
+    dense least-squares fit of the same piecewise-linear profile, on a bead beside a bone's
+    edge: to rounding; the F test takes it there and not on a flat background."""
+    rng = np.random.default_rng(3)
+    st = D.DetectionSettings()
+    blur, radius = st.smooth_px(8.0), st.window_px(8.0)
+    geo = D._geo(8.0, blur, radius)
+    c = np.array([32.2, 31.7])
+    pts = np.array([[32, 32]])
+    raw = {k: D._gather(render_beads(c[None], 8.0, 64, rng, background=_edge_scene(k, c)), pts[:, 0], pts[:, 1],
+                        geo.half) for k in ("step", "flat")}
+    bg, chosen = D._edge_background(raw["step"], geo, None)
+    assert chosen.all()
+    _, chosen_flat = D._edge_background(raw["flat"], geo, None)
+    assert not chosen_flat.any()
+    # the plain formula: the direction from the ring's gradients, dense hat functions, the
+    # penalised normal equations, one pass without the 3-sd outliers
+    p = raw["step"][0]
+    P = 2 * geo.half + 1
+    gi, K, nk, pen = D._edge_geo(geo.key)[:4]
+    g = p.reshape(P, P)
+    ys, xs = np.divmod(gi, P)
+    gx, gy = g[ys, xs + 1] - g[ys, xs - 1], g[ys + 1, xs] - g[ys - 1, xs]
+    J = np.array([[gx @ gx, gx @ gy], [gx @ gy, gy @ gy]])
+    n = np.linalg.eigh(J)[1][:, -1]
+    u = (geo.dx * n[0] + geo.dy * n[1]) / D._EDGE_KNOT_PX
+    H = np.maximum(0.0, 1.0 - np.abs(u[:, None] - (np.arange(nk) - K)[None, :]))
+    ring = geo.ring_idx
+
+    def solve(sel):
+        Hr = H[sel]
+        return H @ np.linalg.solve(Hr.T @ Hr + pen, Hr.T @ p[sel])
+
+    b1 = solve(ring)
+    r = np.abs(p[ring] - b1[ring])
+    sd = 1.482602218505602 * np.median(r)
+    b2 = solve(ring[r <= 3 * sd + 1e-9])
+    np.testing.assert_allclose(bg[0], b2, rtol=0, atol=1e-8)
+
+
+@pytest.mark.parametrize("kind", ["step", "line"])
+def test_marker_on_an_edge_is_not_pulled_off_by_it(kind):
+    """A 1 mm reference bead (8 px) seated beside a bone's edge or a dark line 2 px from its
+    centre, through the twin's detector chain (100 noise draws, sub-pixel positions, rough
+    seeds): with the plane under it the centre is pulled across the edge; with the edge
+    background (the default) the bias falls to less than half (step 0.23 -> 0.06 px, line 0.18 ->
+    0.07 px) and the error RMS by more than a tenth.
+    On a flat background the two give the same centres (the F test never takes the edge)."""
+    rng = np.random.default_rng(11)
+    err = {m: [] for m in ("plane", "edge")}
+    flat_same = []
+    for _ in range(100):
+        c = np.array([32.0, 32.0]) + rng.uniform(-0.5, 0.5, 2)
+        seed = c[None] + rng.normal(0, 0.3, 2)
+        img = render_beads(c[None], 8.0, 64, rng, background=_edge_scene(kind, c))
+        for m in err:
+            r = D.refine_at(img, seed, 8.0, settings=D.DetectionSettings(background=m))
+            err[m].append([r.x_px[0] - c[0], r.y_px[0] - c[1]])
+        flat = render_beads(c[None], 8.0, 64, rng)
+        a, b = (D.refine_at(flat, seed, 8.0, settings=D.DetectionSettings(background=m)) for m in ("plane", "edge"))
+        flat_same.append(a.x_px[0] == b.x_px[0] and a.y_px[0] == b.y_px[0])
+    bias = {m: float(np.hypot(*np.mean(e, axis=0))) for m, e in err.items()}
+    rms = {m: float(np.sqrt(np.mean(np.sum(np.square(e), axis=1)))) for m, e in err.items()}
+    print(f"{kind}: bias plane {bias['plane']:.3f} px, edge {bias['edge']:.3f} px; "
+          f"RMS plane {rms['plane']:.3f} px, edge {rms['edge']:.3f} px")
+    assert np.isfinite(np.array(err["edge"])).all()
+    assert bias["plane"] > 0.15 and bias["edge"] < bias["plane"] / 2 and rms["edge"] < 0.9 * rms["plane"]
+    assert all(flat_same)

@@ -68,6 +68,10 @@ class DetectionConfig(StrictModel):
     max_sigma_factor: PositiveFloat | None = Field(0.75, description="a fitted Gaussian width above this times the "
                                                    "diameter is not a marker (null: no limit)")
     blur_px: PositiveFloat | None = Field(None, description="marker blur sigma (default max(0.6, d/5))")
+    background: Literal["edge", "plane"] = Field(
+        "edge", description="what is taken from under a marker before its centre is measured: plane (fitted to the "
+                            "ring of pixels around it) or edge (the plane, or where an F test finds structure the "
+                            "plane leaves, a profile across one direction: a bone's or an instrument's edge, a line)")
     roi: Union[RoiSpec, dict[str, RoiSpec]] = Field(
         "auto", description="where markers are looked for: auto (the intensifier's circular field, found in the "
                             "first frame), none (the whole frame), a circle {centre_px: [x, y], radius_px: r}, or "
@@ -290,7 +294,7 @@ def build_config(config_path=None, *, view=(), calibration=None, polarity=None, 
     for k, v in extra.items():
         if v is None:
             continue
-        if k in ("method", "parity", "minmass", "k_sigma", "min_snr"):
+        if k in ("method", "parity", "minmass", "k_sigma", "min_snr", "background"):
             data.setdefault("detection", {})[k] = v
         else:
             data[k] = v
@@ -1022,7 +1026,8 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
                             min_snr=cfg.detection.min_snr, method=cfg.detection.method,
                             max_elongation=cfg.detection.max_elongation, blur_px=cfg.detection.blur_px,
                             max_sigma_factor=cfg.detection.max_sigma_factor,
-                            parity=cfg.detection.parity, minmass=cfg.detection.minmass)
+                            parity=cfg.detection.parity, minmass=cfg.detection.minmass,
+                            background=cfg.detection.background)
     if det.parity == "trackpy" and (det.method != "centroid" or seed_df is not None):
         raise InputError("detection.parity 'trackpy' is trackpy's locate: it needs method 'centroid' and "
                          "automatic detection (no seeds)", path=config_path, key="detection.parity")
