@@ -798,7 +798,7 @@ def test_edge_background_as_plainly_computed():
     _, chosen_flat = D._edge_background(raw["flat"], geo, None)
     assert not chosen_flat.any()
     # the plain formula: the direction from the ring's gradients, dense hat functions, the
-    # penalised normal equations, one pass without the 3-sd outliers
+    # penalised normal equations
     p = raw["step"][0]
     P = 2 * geo.half + 1
     gi, K, nk, pen = D._edge_geo(geo.key)[:4]
@@ -815,11 +815,7 @@ def test_edge_background_as_plainly_computed():
         Hr = H[sel]
         return H @ np.linalg.solve(Hr.T @ Hr + pen, Hr.T @ p[sel])
 
-    b1 = solve(ring)
-    r = np.abs(p[ring] - b1[ring])
-    sd = 1.482602218505602 * np.median(r)
-    b2 = solve(ring[r <= 3 * sd + 1e-9])
-    np.testing.assert_allclose(bg[0], b2, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(bg[0], solve(ring), rtol=0, atol=1e-8)
 
 
 @pytest.mark.parametrize("kind", ["step", "line"])
@@ -827,7 +823,7 @@ def test_marker_on_an_edge_is_not_pulled_off_by_it(kind):
     """A 1 mm reference bead (8 px) seated beside a bone's edge or a dark line 2 px from its
     centre, through the twin's detector chain (100 noise draws, sub-pixel positions, rough
     seeds): with the plane under it the centre is pulled across the edge; with the edge
-    background (the default) the bias falls to less than half (step 0.23 -> 0.06 px, line 0.18 ->
+    background (the default) the bias falls to less than half (step 0.23 -> 0.05 px, line 0.18 ->
     0.07 px) and the error RMS by more than a tenth.
     On a flat background the two give the same centres (the F test never takes the edge)."""
     rng = np.random.default_rng(11)

@@ -26,7 +26,9 @@ The chain (:func:`detect_markers`), for markers of diameter ``d`` pixels:
    connected components are wanted, ``cv2.connectedComponentsWithStats`` merges plateaus.
 5. **Sub-pixel centre** on a patch around each candidate, after subtracting a plane fitted
    robustly to the patch's outer ring, with the pixels nearer to a neighbouring marker left
-   out: the intensity-weighted centroid (iterated, soft-edged window), then refined by a
+   out, or, where the ring shows an edge the plane cannot follow (a bone's, the skull rim's,
+   an instrument's, a line), a profile across the edge (:func:`_edge_background`): the
+   intensity-weighted centroid (iterated, soft-edged window), then refined by a
    2-D Gaussian fit (default, batched Levenberg-Marquardt), or Parthasarathy's (2012)
    radial-symmetry centre.  On synthetic chord-law beads (steel spheres 2.6-5 px across,
    0.7 px blur, fluoroscopy noise; ``tests/test_detect.py``) the Gaussian refinement has the
@@ -758,8 +760,8 @@ def _plane_removed(p: np.ndarray, geo: _Geo, sign: float, valid: np.ndarray | No
     return sign * (coef @ geo.A.T - p)
 
 
-#: The edge background (:func:`_edge_background`): its knots' spacing (px, across the edge and
-#: out from the marker), the weight of their second-difference penalty (it ties knots the ring
+#: The edge background (:func:`_edge_background`): its knots' spacing (px, across the edge),
+#: the weight of their second-difference penalty (it ties knots the ring
 #: hardly reaches and keeps a profile from following the noise), the F test's false-alarm rate
 #: per marker on a background a plane describes, how far beyond a neighbour's signal its pixels
 #: are left out of the ring (px), the share of the ring a neighbour may take before the plane is
@@ -772,18 +774,12 @@ _EDGE_MAX_CROWDED = 0.2
 _EDGE_MAX_RESIDUAL = 1.5
 
 
-def _penalty(nk: int) -> np.ndarray:
-    d2 = np.diff(np.eye(nk), 2, axis=0)
-    return _EDGE_SMOOTH * (d2.T @ d2) + 1e-6 * np.eye(nk)
-
-
 @functools.lru_cache(maxsize=8)
 def _edge_geo(key: tuple) -> tuple:
     """For the geometry ``_geo(*key)``: the ring pixels whose four neighbours are ring pixels
-    too (where the background's gradient and noise are taken); the knots across the edge
-    (half count ``K``: knots at ``-K..K`` times :data:`_EDGE_KNOT_PX`, reaching the patch's
-    corners), their number and penalty matrix; the radial knots' positions of the ring's
-    pixels (in knots), their number and penalty."""
+    too (where the ring's gradients and noise are taken), the knots' half count ``K`` (knots
+    at ``-K..K`` times :data:`_EDGE_KNOT_PX` across the edge, reaching the patch's corners),
+    their number and the penalty matrix."""
     geo = _geo(*key)
     P = 2 * geo.half + 1
     r = geo.ring.reshape(P, P)
@@ -791,12 +787,11 @@ def _edge_geo(key: tuple) -> tuple:
     ok[1:-1, 1:-1] = r[1:-1, 1:-1] & r[1:-1, 2:] & r[1:-1, :-2] & r[2:, 1:-1] & r[:-2, 1:-1]
     K = int(math.ceil(geo.half * math.sqrt(2.0) / _EDGE_KNOT_PX)) + 1
     nk = 2 * K + 1
-    q = np.hypot(geo.dx[geo.ring_idx], geo.dy[geo.ring_idx]) / _EDGE_KNOT_PX
-    nr = int(q.max()) + 2
-    out = (np.flatnonzero(ok.ravel()), K, nk, _penalty(nk), q, nr, _penalty(nr))
-    for a in out:
-        if isinstance(a, np.ndarray):
-            a.setflags(write=False)
+    d2 = np.diff(np.eye(nk), 2, axis=0)
+    out = (np.flatnonzero(ok.ravel()), K, nk, _EDGE_SMOOTH * (d2.T @ d2) + 1e-6 * np.eye(nk))
+    for x in out:
+        if isinstance(x, np.ndarray):
+            x.setflags(write=False)
     return out
 
 
@@ -826,7 +821,8 @@ def _hat_value(c: np.ndarray, k: np.ndarray, f: np.ndarray) -> np.ndarray:
 
 
 def _edge_background(p: np.ndarray, geo: _Geo, valid: np.ndarray | None, xy: np.ndarray | None = None,
-                     others: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                     others: np.ndarray | None = None,
+                     noise: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A background under each marker that varies across one direction only, where it
     explains the ring of pixels around the marker and a plane does not.
 
@@ -838,20 +834,18 @@ def _edge_background(p: np.ndarray, geo: _Geo, valid: np.ndarray | None, xy: np.
     the main axis of the ring's gradients (their structure tensor), and ``b`` is piecewise
     linear on knots :data:`_EDGE_KNOT_PX` apart with a second-difference penalty, fitted to
     the ring's valid pixels (the ring holds every ``u`` the marker covers, at both ends of its
-    chord along the edge: ``b`` under the marker is interpolated, not extrapolated), then once
-    more without its outliers (beyond 3 robust sd).
+    chord along the edge: ``b`` under the marker is interpolated, not extrapolated).
 
-    The profile replaces the plane only where (1) an F test on the ring's residuals (the
-    knots the ring reaches plus the angle, against the plane's three parameters) rejects the
-    plane at :data:`_EDGE_ALPHA`; (2) it beats, by BIC, a radial profile on the plane's
-    residual (a halo: an out-of-focus feature's ring, a marker's own wings reaching the ring
-    is structure too, but no edge); (3) its residual is within :data:`_EDGE_MAX_RESIDUAL`
-    times the ring's pixel noise (a Laplacian's robust sd, which smooth structure does not
-    enter): a neighbour's blob leaves more; and (4) other markers (``others``, the ``xy`` of
-    the patches' centres) take at most :data:`_EDGE_MAX_CROWDED` of its ring, within their
-    signal's reach plus :data:`_EDGE_NEIGHBOUR_PAD_PX` (those pixels are left out of the fits).
-    On a flat background the plane's centres are kept to the bit; in a crowded field (6 px
-    beads 7 px apart) 3 % of the beads took the profile.
+    Only markers whose ring the least-squares plane leaves with more than its pixel noise
+    (``noise``, per marker, else a Laplacian's robust sd over the ring; by more than 3 sd of a
+    variance from that many pixels) are looked at, and the profile replaces the plane where
+    (1) an F test on the ring's residuals (the knots the ring reaches plus the angle, against
+    the plane's three parameters) rejects the plane at :data:`_EDGE_ALPHA`, (2) the profile
+    leaves no more than :data:`_EDGE_MAX_RESIDUAL` times the pixel noise (a blob leaves more:
+    it is no edge), and (3) other markers (``others``; ``xy`` the patches' centres) hold at
+    most :data:`_EDGE_MAX_CROWDED` of the ring within their signal's reach plus
+    :data:`_EDGE_NEIGHBOUR_PAD_PX` (those pixels are left out of the fits).  On a flat
+    background the plane's centres are kept to the bit.
 
     ``p`` (N, P*P): the raw patches.  Returns (background (N, P*P), chosen (N,) bool); rows not
     chosen are zero."""
@@ -859,7 +853,7 @@ def _edge_background(p: np.ndarray, geo: _Geo, valid: np.ndarray | None, xy: np.
 
     n, PP = p.shape
     P = 2 * geo.half + 1
-    gi, K, nk, pen, q, nr, rpen = _edge_geo(geo.key)
+    gi, K, nk, pen = _edge_geo(geo.key)
     ri = geo.ring_idx
     pr = p[:, ri]                                          # the ring's pixels (N, R)
     w = np.ones(pr.shape) if valid is None else valid[:, ri].astype(np.float64)
@@ -874,14 +868,37 @@ def _edge_background(p: np.ndarray, geo: _Geo, valid: np.ndarray | None, xy: np.
         if keep.any():
             i, off = i[keep], off[keep]
             near = (geo.dx[ri][None] - off[:, :1]) ** 2 + (geo.dy[ri][None] - off[:, 1:]) ** 2 <= reach * reach
-            hit = np.zeros(pr.shape, bool)
-            np.logical_or.at(hit, i, near)
+            R = pr.shape[1]
+            cell = (i[:, None] * R + np.arange(R)[None, :])[near]
+            hit = np.bincount(cell, minlength=n * R).reshape(n, R) > 0
             crowded = hit.mean(axis=1) > _EDGE_MAX_CROWDED
             w = w * ~hit
+    # the least-squares plane on the ring's pixels against their noise: where it leaves no
+    # more than noise (within 3 sd of a variance from this many pixels), nothing to look at
+    A = geo.A_ring
+    coef = _solve((w @ geo.AA_ring).reshape(-1, 3, 3) + _EYE3_TINY, ((w * pr) @ A)[:, :, None])[..., 0]
+    plane = coef @ A.T
+    m = w.sum(axis=1)
+    rssp = (w * (pr - plane) ** 2).sum(axis=1)
+    if noise is None:
+        # a Laplacian's robust sd over the ring: smooth structure does not enter it
+        lap = p[:, gi - 1] + p[:, gi + 1] + p[:, gi - P] + p[:, gi + P] - 4.0 * p[:, gi]
+        sig = _MAD * _row_median(np.abs(lap - _row_median(lap, None)[:, None]), None) / math.sqrt(20.0)
+    else:
+        sig = noise
+    dfp = np.maximum(m - 3.0, 1.0)
+    with np.errstate(all="ignore"):
+        look = (rssp / dfp > sig ** 2 * (1.0 + 3.0 * np.sqrt(2.0 / dfp))) & ~crowded & (m >= 20)
+    out = np.zeros_like(p)
+    chosen = np.zeros(n, bool)
+    if not look.any():
+        return out, chosen
+    i = np.flatnonzero(look)
+    pi, pr, w, m, rssp, sig = p[i], pr[i], w[i], m[i], rssp[i], sig[i]
     # the edge's normal: the main axis of the ring's gradients
-    gx = p[:, gi + 1] - p[:, gi - 1]
-    gy = p[:, gi + P] - p[:, gi - P]
-    wg = np.ones(gx.shape) if valid is None else valid[:, gi]
+    gx = pi[:, gi + 1] - pi[:, gi - 1]
+    gy = pi[:, gi + P] - pi[:, gi - P]
+    wg = 1.0 if valid is None else valid[i][:, gi]
     jxx = (wg * gx * gx).sum(axis=1)
     jyy = (wg * gy * gy).sum(axis=1)
     jxy = (wg * gx * gy).sum(axis=1)
@@ -889,6 +906,7 @@ def _edge_background(p: np.ndarray, geo: _Geo, valid: np.ndarray | None, xy: np.
     cs, sn = np.cos(th)[:, None], np.sin(th)[:, None]
 
     def knots(dx, dy, rows):
+        """Each pixel's knot to its left (flat over the rows' knots) and its share of the next."""
         us = (dx[None] * cs[rows] + dy[None] * sn[rows]) * (1.0 / _EDGE_KNOT_PX) + K
         k0 = np.floor(us)
         return k0.astype(np.intp) + (np.arange(len(us)) * nk)[:, None], us - k0
@@ -896,47 +914,20 @@ def _edge_background(p: np.ndarray, geo: _Geo, valid: np.ndarray | None, xy: np.
     k, f = knots(geo.dx[ri], geo.dy[ri], slice(None))
     c, reach_k = _hat_fit(k, f, w, pr, nk, pen)
     bg = _hat_value(c, k, f)
-    # the plane on the same pixels
-    A = geo.A_ring
-    AwT = (A[None] * w[:, :, None]).transpose(0, 2, 1)
-    plane = (A @ _solve(AwT @ A + _EYE3_TINY, AwT @ pr[:, :, None]))[..., 0]
-    m = w.sum(axis=1)
     rss1 = (w * (pr - bg) ** 2).sum(axis=1)
-    rssp = (w * (pr - plane) ** 2).sum(axis=1)
     k1 = (reach_k > 0.5).sum(axis=1) + 1.0            # the knots the ring reaches, and the angle
     d1, d2 = np.maximum(k1 - 3.0, 1.0), np.maximum(m - k1, 1.0)
     with np.errstate(all="ignore"):
         F = ((rssp - rss1) / d1) / (rss1 / d2)
-        chosen = np.isfinite(F) & (F > 0) & (m - k1 >= 10) & (fdtrc(d1, d2, F) < _EDGE_ALPHA) & ~crowded
-    out = np.zeros_like(p)
-    if not chosen.any():
+        ok = np.isfinite(F) & (F > 0) & (m - k1 >= 10) & (fdtrc(d1, d2, F) < _EDGE_ALPHA)
+        # (2) the profile leaves the ring's pixel noise only
+        ok &= rss1 / d2 <= (_EDGE_MAX_RESIDUAL * sig) ** 2
+    if not ok.any():
         return out, chosen
-    # (2) against a halo: a radial profile on the plane's residual
-    q0 = np.floor(q)
-    kr = q0.astype(np.intp)[None] + (np.arange(n) * nr)[:, None]
-    fq = np.broadcast_to(q - q0, pr.shape)
-    cr, reach_r = _hat_fit(kr, fq, w, pr - plane, nr, rpen)
-    rssr = (w * (pr - plane - _hat_value(cr, kr, fq)) ** 2).sum(axis=1)
-    # (3) the profile leaves the ring's pixel noise only
-    lap = p[:, gi - 1] + p[:, gi + 1] + p[:, gi - P] + p[:, gi + P] - 4.0 * p[:, gi]
-    sig = _MAD * _row_median(np.abs(lap - _row_median(lap, None)[:, None]), None) / math.sqrt(20.0)
-    with np.errstate(all="ignore"):
-        lm = np.log(np.maximum(m, 2.0))
-        bic1 = m * np.log(rss1 / m) + k1 * lm
-        bicr = m * np.log(rssr / m) + (3.0 + (reach_r > 0.5).sum(axis=1)) * lm
-        chosen &= (bic1 < bicr) & (rss1 / d2 <= (_EDGE_MAX_RESIDUAL * sig) ** 2)
-    if not chosen.any():
-        return out, chosen
-    # once more without the profile's outliers (a pixel of something else in the ring)
-    i = np.flatnonzero(chosen)
-    res = np.abs(pr[i] - bg[i])
-    sd = _MAD * _row_median(res, _median_rows(w[i] > 0, res.shape))
-    w2 = w[i] * (res <= 3.0 * sd[:, None] + 1e-9)
-    w2 = np.where((w2.sum(axis=1) >= k1[i] + 10)[:, None], w2, w[i])
-    k, f = knots(geo.dx[ri], geo.dy[ri], i)
-    c, _ = _hat_fit(k, f, w2, pr[i], nk, pen)
-    k, f = knots(geo.dx, geo.dy, i)
-    out[i] = _hat_value(c, k, f)
+    sel = np.flatnonzero(ok)
+    chosen[i[sel]] = True
+    k, f = knots(geo.dx, geo.dy, sel)
+    out[i[sel]] = _hat_value(c.reshape(-1, nk)[sel].reshape(-1), k, f)
     return out, chosen
 
 
@@ -1147,7 +1138,7 @@ def _gaussian_fit(s: np.ndarray, geo: _Geo, start: np.ndarray, sigma0: float,
 
 
 def _measure(img: np.ndarray, pts: np.ndarray, diameter_px: float, sign: float, st: DetectionSettings,
-             others: np.ndarray | None) -> dict:
+             others: np.ndarray | None, noise: np.ndarray | None = None) -> dict:
     """Sub-pixel measurement of candidates near the pixels ``pts`` (N, 2); arrays of
     :data:`COLUMNS` except ``snr`` and ``area_px``."""
     blur = st.smooth_px(diameter_px)
@@ -1160,7 +1151,7 @@ def _measure(img: np.ndarray, pts: np.ndarray, diameter_px: float, sign: float, 
     raw = _gather(img, ix, iy, geo.half)
     s = _plane_removed(raw, geo, sign, valid)
     if st.background == "edge":
-        bg, edge = _edge_background(raw, geo, valid, ixy.astype(float), others)
+        bg, edge = _edge_background(raw, geo, valid, ixy.astype(float), others, noise)
         if edge.any():
             s = np.where(edge[:, None], sign * (bg - raw), s)
     valid = _above_peak_excluded(s, geo, valid)
@@ -1332,7 +1323,7 @@ def _finish(img, xs, ys, area, noise, diameter_px, polarity, st, mask=None, neig
     if len(pts) == 0:
         return {c: np.zeros(0) for c in COLUMNS}
     m = _measure(img, pts, diameter_px, 1.0 if polarity == "dark" else -1.0, st,
-                 pts if neighbours is None else neighbours)
+                 pts if neighbours is None else neighbours, np.asarray(noise, float))
     m["area_px"] = np.asarray(area, float)
     m["snr"] = m["amplitude"] / np.maximum(np.asarray(noise, float), 1e-9)
     keep = np.isfinite(m["x_px"]) & (m["snr"] >= st.min_snr) & (m["elongation"] <= st.max_elongation)
