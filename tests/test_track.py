@@ -180,18 +180,14 @@ def test_cli_warns_of_a_jolting_picture(tmp_path):
             assert "frame-shifts" not in codes
 
 
-def test_cli_a_dropped_frame_file_keeps_the_numbering(tmp_path):
-    """``bsipipe track`` on frames f000..f011 with f005.png missing (the recorder dropped it):
-    frame 5's rows are empty (status missing-frame), the later frames keep their numbers and
-    times (frame 6 at 3 s at 2 frames/s), the markers are followed across the gap, a
-    ``missing-frames`` warning names the frame, and XMALab's 2-D file keeps a blank row for
-    it."""
-    import cv2
-    frames, truth = crossing_sequence(n=12)
+def _track_crossing(tmp_path, frames, truth, skip=()) -> Path:
+    """``bsipipe track`` on the crossing sequence's frames as PNG files (those in ``skip``
+    not written), seeded at the truth's first positions (markers A, B, C), 2 frames/s;
+    returns the output folder."""
     d = tmp_path / "frames"
     d.mkdir()
     for k, img in enumerate(frames):
-        if k != 5:
+        if k not in skip:
             cv2.imwrite(str(d / f"f{k:03d}.png"), img)
     seeds = tmp_path / "seeds.csv"
     pd.DataFrame([("cam1", m, *truth[0, j]) for j, m in enumerate("ABC")],
@@ -200,6 +196,17 @@ def test_cli_a_dropped_frame_file_keeps_the_numbering(tmp_path):
     r = CliRunner().invoke(cli, ["-q", "track", "--view", f"cam1={d}", "--seeds", str(seeds), "--diameter-px", "4",
                                  "--fps", "2", "-o", str(out)])
     assert r.exit_code == 0, r.output
+    return out
+
+
+def test_cli_a_dropped_frame_file_keeps_the_numbering(tmp_path):
+    """``bsipipe track`` on frames f000..f011 with f005.png missing (the recorder dropped it):
+    frame 5's rows are empty (status missing-frame), the later frames keep their numbers and
+    times (frame 6 at 3 s at 2 frames/s), the markers are followed across the gap, a
+    ``missing-frames`` warning names the frame, and XMALab's 2-D file keeps a blank row for
+    it."""
+    frames, truth = crossing_sequence(n=12)
+    out = _track_crossing(tmp_path, frames, truth, skip=(5,))
     t = pd.read_csv(out / "markers2d.csv")
     assert t["frame"].tolist() == [k for k in range(12) for _ in range(3)]
     gone = t[t["frame"] == 5]
@@ -1222,22 +1229,11 @@ def test_cli_names_frames_without_their_picture(tmp_path):
     pulsed fluoroscopy): a ``frames-without-markers`` warning names them, the markers are
     followed across them; a marker hidden in one frame while the others are seen is not such
     a frame, nor are frames before the first or after the last in which markers were found."""
-    import cv2
     frames, truth = crossing_sequence(n=14)
     rng = np.random.default_rng(3)
     for k in (4, 9):
         frames[k] = np.clip(np.rint(rng.normal(12, 2, frames[k].shape)), 0, 255).astype(frames[k].dtype)
-    d = tmp_path / "frames"
-    d.mkdir()
-    for k, img in enumerate(frames):
-        cv2.imwrite(str(d / f"f{k:03d}.png"), img)
-    seeds = tmp_path / "seeds.csv"
-    pd.DataFrame([("cam1", m, *truth[0, j]) for j, m in enumerate("ABC")],
-                 columns=["view", "marker", "x_px", "y_px"]).to_csv(seeds, index=False)
-    out = tmp_path / "out"
-    r = CliRunner().invoke(cli, ["-q", "track", "--view", f"cam1={d}", "--seeds", str(seeds), "--diameter-px", "4",
-                                 "--fps", "2", "-o", str(out)])
-    assert r.exit_code == 0, r.output
+    out = _track_crossing(tmp_path, frames, truth)
     w = [w for w in json.loads((out / "track.json").read_text())["warnings"] if w["code"] == "frames-without-markers"]
     assert len(w) == 1 and w[0]["frames"] == {"cam1": [4, 9]}
     t = pd.read_csv(out / "markers2d.csv")

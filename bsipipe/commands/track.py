@@ -851,6 +851,12 @@ def _point_sds(points3d: pd.DataFrame, table: pd.DataFrame, vpair, pair) -> None
             points3d[f"sd_{a}_mm{suffix}"] = out[:, k]
 
 
+def _frames_listed(frames: dict[str, list[int]]) -> str:
+    """``cam1: 2 frame(s), 4, 9; cam2: ...`` (the first ten of each view) for a warning."""
+    return "; ".join(f"{v}: {len(m)} frame(s), {', '.join(map(str, m[:10]))}{', ...' if len(m) > 10 else ''}"
+                     for v, m in frames.items())
+
+
 def _frames_without_markers(table: pd.DataFrame) -> dict[str, list[int]]:
     """Per view, the frames in which no marker was found although at least two were found in
     an earlier and in a later frame: a frame without its picture (a missed exposure of pulsed
@@ -1101,9 +1107,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         warnings.append(warning(
             "missing-frames",
             "track: frames missing from the numbering of the files or the source's time stamps ("
-            + "; ".join(f"{v}: {len(m)} frame(s), {', '.join(map(str, m[:10]))}{', ...' if len(m) > 10 else ''}"
-                        for v, m in missing.items())
-            + "): their rows are empty (status missing-frame, no 3-D point), and the later frames keep their "
+            + _frames_listed(missing) + "): their rows are empty (status missing-frame, no 3-D point), and the later frames keep their "
               "numbers and pair with the other view's frames of the same number",
             log, frames={v: m for v, m in missing.items()}))
         table = _missing_frame_rows(table, missing, cfg.fps, views)
@@ -1113,9 +1117,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         warnings.append(warning(
             "frames-without-markers",
             "track: frames in which no marker was found, between frames where they were ("
-            + "; ".join(f"{v}: {len(m)} frame(s), {', '.join(map(str, m[:10]))}{', ...' if len(m) > 10 else ''}"
-                        for v, m in empty.items())
-            + "): a frame without its picture (a missed exposure, a black or flashed frame) more likely than "
+            + _frames_listed(empty) + "): a frame without its picture (a missed exposure, a black or flashed frame) more likely than "
               "every marker hidden at once; the markers were followed across them (lost and refound events), "
               "the frames have no 3-D point from that view",
             log, frames=empty))
