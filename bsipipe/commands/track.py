@@ -577,6 +577,13 @@ def prefetched(frames, depth: int = 2):
         t.join(timeout=5.0)
 
 
+#: The polarity and diameter probes measure with the plane background: their thresholds and
+#: the two-size test of :func:`_estimate_diameter` were set on it, and a run's choice of
+#: background (for its centres) does not move its diameter (the edge background had moved the
+#: grid probe's from 4.60 to 3.24 px: 4524 of 4628 positions within 1 px at 4.60, 4259 at 3.24).
+_PROBE = {"background": "plane"}
+
+
 def _polarity_from_seeds(firsts: dict, seeds: pd.DataFrame, diameter_px: float | None) -> tuple[str, str, dict]:
     """Dark or bright markers, from the seeds: each seeded view's first frame is searched
     around every seed (:func:`~bsipipe.imaging.detect.refine_at`, 6 px) for a dark and for a
@@ -590,7 +597,7 @@ def _polarity_from_seeds(firsts: dict, seeds: pd.DataFrame, diameter_px: float |
     total = sum(len(xy) for _, xy in seeded)
     # beads larger than 4 px may need a larger diameter to be found at all
     for d in ([diameter_px] if diameter_px else [4.0, 8.0, 16.0]):
-        n = {p: sum(int(refine_at(img, xy, d, p, search_radius_px=max(6.0, 0.5 * d))["found"].sum())
+        n = {p: sum(int(refine_at(img, xy, d, p, search_radius_px=max(6.0, 0.5 * d), **_PROBE)["found"].sum())
                     for img, xy in seeded) for p in ("dark", "bright")}
         if n["dark"] or n["bright"]:
             break
@@ -607,7 +614,7 @@ def _polarity_from_frames(firsts: dict, diameter_px: float | None, rois: dict | 
     spots and hardly any bright ones; bright is taken only where it finds at least 3 and
     twice as many as dark.  ``firsts``: each view's first frame (:func:`_first_frames`);
     ``rois``: each view's region of interest (default: its field, found)."""
-    from ..imaging.detect import detect_arrays
+    from ..imaging.detect import DetectionSettings, detect_arrays
     # without a diameter, at 4 px, then 8 and 16 px where 4 px finds fewer than 3 of either
     # (markers much larger than 4 px are not seen by a top-hat that small)
     for d in ([diameter_px] if diameter_px else [4.0, 8.0, 16.0]):
@@ -616,7 +623,8 @@ def _polarity_from_frames(firsts: dict, diameter_px: float | None, rois: dict | 
             if img is None:
                 continue
             for p in n:
-                n[p] += int((detect_arrays(img, d, p, (rois or {}).get(v))["snr"] >= 6.0).sum())
+                n[p] += int((detect_arrays(img, d, p, (rois or {}).get(v), DetectionSettings(**_PROBE))["snr"]
+                             >= 6.0).sum())
         if max(n.values()) >= 3:
             break
     pol = "bright" if n["bright"] >= 3 and n["bright"] >= 2 * n["dark"] else "dark"
@@ -654,10 +662,10 @@ def _diameter_without_seeds(first: np.ndarray, polarity: str, roi=None) -> tuple
     more markers of SNR 6 or more; else the first of 8 and 16 px that does, refined to 2.5
     times the median fitted width of what it finds (markers much larger than 4 px are not
     seen by a top-hat that small, and the command would find nothing)."""
-    from ..imaging.detect import detect_arrays
+    from ..imaging.detect import DetectionSettings, detect_arrays
 
     def strong(d):
-        r = detect_arrays(first, d, polarity, roi)
+        r = detect_arrays(first, d, polarity, roi, DetectionSettings(**_PROBE))
         ok = (r["snr"] >= 6.0) & np.isfinite(r["sigma_px"])
         return int(ok.sum()), r["sigma_px"][ok]
 
@@ -688,7 +696,7 @@ def _estimate_diameter(first: np.ndarray, seeds: pd.DataFrame, polarity: str) ->
     xy = seeds[["x_px", "y_px"]].to_numpy()
 
     def found_at(d, pts):
-        r = refine_at(first, pts, d, polarity, search_radius_px=max(6.0, 0.5 * d))
+        r = refine_at(first, pts, d, polarity, search_radius_px=max(6.0, 0.5 * d), **_PROBE)
         return r["found"].to_numpy(bool) & np.isfinite(r["sigma_px"].to_numpy()), r["sigma_px"].to_numpy()
 
     # first probed at 4 px, then 8 and 16 px (markers much larger than 4 px are not seen by a
