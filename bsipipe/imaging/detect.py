@@ -765,13 +765,15 @@ def _plane_removed(p: np.ndarray, geo: _Geo, sign: float, valid: np.ndarray | No
 #: hardly reaches and keeps a profile from following the noise), the F test's false-alarm rate
 #: per marker on a background a plane describes, how far beyond a neighbour's signal its pixels
 #: are left out of the ring (px), the share of the ring a neighbour may take before the plane is
-#: kept, and how far above the ring's pixel noise the profile's residual may be (sd).
+#: kept, how far above the ring's pixel noise the profile's residual may be (sd), and the
+#: profile's range over the ring against the marker's own depth.
 _EDGE_KNOT_PX = 1.5
 _EDGE_SMOOTH = 0.3
 _EDGE_ALPHA = 1e-4
 _EDGE_NEIGHBOUR_PAD_PX = 2.0
 _EDGE_MAX_CROWDED = 0.2
 _EDGE_MAX_RESIDUAL = 1.5
+_EDGE_MAX_RANGE = 1.0
 
 
 @functools.lru_cache(maxsize=8)
@@ -844,7 +846,10 @@ def _edge_background(p: np.ndarray, geo: _Geo, valid: np.ndarray | None, xy: np.
     leaves no more than :data:`_EDGE_MAX_RESIDUAL` times the pixel noise (a blob leaves more:
     it is no edge), and (3) other markers (``others``; ``xy`` the patches' centres) hold at
     most :data:`_EDGE_MAX_CROWDED` of the ring within their signal's reach plus
-    :data:`_EDGE_NEIGHBOUR_PAD_PX` (those pixels are left out of the fits).  On a flat
+    :data:`_EDGE_NEIGHBOUR_PAD_PX` (those pixels are left out of the fits), and (4) the
+    profile's range over the ring is at most :data:`_EDGE_MAX_RANGE` times the marker's own
+    depth (an instrument's edge that dwarfs the marker stays the plane's: on the bench twin a
+    bead hidden by the indentor's rod had been taken 3.3 px off, on the rod's edge).  On a flat
     background the plane's centres are kept to the bit.
 
     ``p`` (N, P*P): the raw patches.  Returns (background (N, P*P), chosen (N,) bool); rows not
@@ -878,6 +883,7 @@ def _edge_background(p: np.ndarray, geo: _Geo, valid: np.ndarray | None, xy: np.
     A = geo.A_ring
     coef = _solve((w @ geo.AA_ring).reshape(-1, 3, 3) + _EYE3_TINY, ((w * pr) @ A)[:, :, None])[..., 0]
     plane = coef @ A.T
+    plane_full = coef @ geo.A.T
     m = w.sum(axis=1)
     rssp = (w * (pr - plane) ** 2).sum(axis=1)
     if noise is None:
@@ -922,6 +928,13 @@ def _edge_background(p: np.ndarray, geo: _Geo, valid: np.ndarray | None, xy: np.
         ok = np.isfinite(F) & (F > 0) & (m - k1 >= 10) & (fdtrc(d1, d2, F) < _EDGE_ALPHA)
         # (2) the profile leaves the ring's pixel noise only
         ok &= rss1 / d2 <= (_EDGE_MAX_RESIDUAL * sig) ** 2
+        # (4) the edge is no deeper across the ring than the marker itself (its plane-removed
+        # depth within 1 px of the centre): an instrument's edge that dwarfs the marker is left
+        # to the plane, as a profile of it could carve a marker-like blob out of the edge
+        depth = np.abs((plane_full[i] - pi)[:, geo.near1]).max(axis=1)
+        on = w > 0
+        span = np.where(on, bg, -np.inf).max(axis=1) - np.where(on, bg, np.inf).min(axis=1)
+        ok &= span <= _EDGE_MAX_RANGE * depth
     if not ok.any():
         return out, chosen
     sel = np.flatnonzero(ok)
