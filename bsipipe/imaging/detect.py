@@ -844,7 +844,7 @@ def _edge_background(p: np.ndarray, geo: _Geo, valid: np.ndarray | None, xy: np.
     (1) an F test on the ring's residuals (the knots the ring reaches plus the angle, against
     the plane's three parameters) rejects the plane at :data:`_EDGE_ALPHA`, (2) the profile
     leaves no more than :data:`_EDGE_MAX_RESIDUAL` times the pixel noise (a blob leaves more:
-    it is no edge), and (3) other markers (``others``; ``xy`` the patches' centres) hold at
+    it is no edge), (3) other markers (``others``; ``xy`` the patches' centres) hold at
     most :data:`_EDGE_MAX_CROWDED` of the ring within their signal's reach plus
     :data:`_EDGE_NEIGHBOUR_PAD_PX` (those pixels are left out of the fits), and (4) the
     profile's range over the ring is at most :data:`_EDGE_MAX_RANGE` times the marker's own
@@ -883,7 +883,6 @@ def _edge_background(p: np.ndarray, geo: _Geo, valid: np.ndarray | None, xy: np.
     A = geo.A_ring
     coef = _solve((w @ geo.AA_ring).reshape(-1, 3, 3) + _EYE3_TINY, ((w * pr) @ A)[:, :, None])[..., 0]
     plane = coef @ A.T
-    plane_full = coef @ geo.A.T
     m = w.sum(axis=1)
     rssp = (w * (pr - plane) ** 2).sum(axis=1)
     if noise is None:
@@ -931,7 +930,7 @@ def _edge_background(p: np.ndarray, geo: _Geo, valid: np.ndarray | None, xy: np.
         # (4) the edge is no deeper across the ring than the marker itself (its plane-removed
         # depth within 1 px of the centre): an instrument's edge that dwarfs the marker is left
         # to the plane, as a profile of it could carve a marker-like blob out of the edge
-        depth = np.abs((plane_full[i] - pi)[:, geo.near1]).max(axis=1)
+        depth = np.abs(coef[i] @ geo.A[geo.near1].T - pi[:, geo.near1]).max(axis=1)
         on = w > 0
         span = np.where(on, bg, -np.inf).max(axis=1) - np.where(on, bg, np.inf).min(axis=1)
         ok &= span <= _EDGE_MAX_RANGE * depth
@@ -1160,11 +1159,12 @@ def _measure(img: np.ndarray, pts: np.ndarray, diameter_px: float, sign: float, 
     h, w = img.shape
     ixy = _clamp(np.rint(pts).astype(np.intp), 0, (w - 1, h - 1))
     ix, iy = ixy[:, 0], ixy[:, 1]
-    valid = _neighbour_valid(ixy.astype(float), others, ix, iy, geo)
+    xy = ixy.astype(float)
+    valid = _neighbour_valid(xy, others, ix, iy, geo)
     raw = _gather(img, ix, iy, geo.half)
     s = _plane_removed(raw, geo, sign, valid)
     if st.background == "edge":
-        bg, edge = _edge_background(raw, geo, valid, ixy.astype(float), others, noise)
+        bg, edge = _edge_background(raw, geo, valid, xy, others, noise)
         if edge.any():
             s = np.where(edge[:, None], sign * (bg - raw), s)
     valid = _above_peak_excluded(s, geo, valid)
@@ -1335,10 +1335,11 @@ def _finish(img, xs, ys, area, noise, diameter_px, polarity, st, mask=None, neig
     pts = np.column_stack([xs, ys]).astype(float)
     if len(pts) == 0:
         return {c: np.zeros(0) for c in COLUMNS}
+    noise = np.asarray(noise, float)
     m = _measure(img, pts, diameter_px, 1.0 if polarity == "dark" else -1.0, st,
-                 pts if neighbours is None else neighbours, np.asarray(noise, float))
+                 pts if neighbours is None else neighbours, noise)
     m["area_px"] = np.asarray(area, float)
-    m["snr"] = m["amplitude"] / np.maximum(np.asarray(noise, float), 1e-9)
+    m["snr"] = m["amplitude"] / np.maximum(noise, 1e-9)
     keep = np.isfinite(m["x_px"]) & (m["snr"] >= st.min_snr) & (m["elongation"] <= st.max_elongation)
     if st.max_sigma_factor is not None:
         # a Gaussian this wide (half-maximum width 1.8 d at the default 0.75) is not a bead of
