@@ -956,62 +956,39 @@ def _track_views(cfg, views, seed_df, d: dict, det, tk, progress: bool, rois: di
     return tables, events, info, first_images, frame_hashes
 
 
-def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diameter_px=None, seeds=None,
-        fps=None, loop=None, progress: bool = False, **extra) -> dict:
-    """The whole command; returns the ``track.json`` content (already written to ``out``)."""
-    from ..imaging.detect import DetectionSettings
-    from ..imaging.track import TrackSettings
-    from ..provenance import ResultSet, provenance
+def _check_frame_sizes(rig, pair, shapes: dict, path) -> None:
+    """Each calibrated view's frames must have the size of the image its camera was
+    calibrated on: the camera matrix holds for that image, and frames binned, cropped or
+    exported at another size would be triangulated through the wrong rays."""
+    for v in pair:
+        size, shape = rig[v].image_size, shapes.get(v)
+        if size and shape is not None and (int(shape[1]), int(shape[0])) != (int(size[0]), int(size[1])):
+            raise InputError(f"view {v!r}: its frames are {shape[1]}x{shape[0]} px, the calibration's camera "
+                             f"{v!r} is {size[0]}x{size[1]} px (frames binned, cropped or exported at another "
+                             "size): calibrate from frames of this size, or track frames of the calibrated size",
+                             path=path)
 
-    cfg = build_config(config_path, view=view, calibration=calibration, polarity=polarity,
-                       diameter_px=diameter_px, seeds=seeds, fps=fps, loop=loop, **extra)
-    views = list(cfg.views)
-    for v, p in cfg.views.items():
-        if not (os.path.exists(p) or any(c in p for c in "*?[")):
-            raise InputError(f"view {v}: no such file or folder", path=p)
-    # each view's first frame, for the seeds' check, the polarity and the diameter (then let go)
-    given_roi = _given_roi(cfg)
-    firsts = (_first_frames(cfg.views, cfg.channel)
-              if cfg.seeds or cfg.polarity == "auto" or cfg.diameter_px is None or cfg.calibration
-              or given_roi else {})
-    shapes = {v: None if im is None else im.shape for v, im in firsts.items()}
-    rois = _resolve_rois(cfg, shapes, config_path) if given_roi else _roi_per_view(cfg)
-    rig = None
-    if cfg.calibration:
-        rig, pair = _read_calibration(cfg.calibration, views)
-        for v in pair:
-            size, shape = rig[v].image_size, shapes.get(v)
-            if size and shape is not None and (int(shape[1]), int(shape[0])) != (int(size[0]), int(size[1])):
-                # the camera matrix holds for the image it was calibrated on: frames binned, cropped
-                # or exported at another size would be triangulated through the wrong rays
-                raise InputError(f"view {v!r}: its frames are {shape[1]}x{shape[0]} px, the calibration's camera "
-                                 f"{v!r} is {size[0]}x{size[1]} px (frames binned, cropped or exported at another "
-                                 "size): calibrate from frames of this size, or track frames of the calibrated size",
-                                 path=cfg.calibration)
-    seed_df = read_seeds(cfg.seeds, views, shapes) if cfg.seeds else None
-    if seed_df is not None:
-        outside = _seeds_outside(seed_df, rois)
-        if outside:
-            raise InputError("seeds outside their view's given region of interest (detection.roi): "
-                             + "; ".join(f"{m} in {v} at ({x:.1f}, {y:.1f})" for v, m, x, y in outside),
-                             path=cfg.seeds)
-    # a diameter per view (config) is probed as no diameter: 4, 8 and 16 px
+
+def _marker_size(cfg, views, firsts: dict, seed_df, rois: dict):
+    """The markers' polarity and diameter, given or estimated from the first frames.  Returns
+    ``(cfg with the polarity, (polarity source, counts or None), (diameter, per view, source))``.
+    A diameter per view (config) is probed as no diameter: 4, 8 and 16 px."""
     one_d = cfg.diameter_px if not isinstance(cfg.diameter_px, dict) else None
-    polarity_note = "given"
-    polarity_counts = None
+    polarity = ("given", None)
     if cfg.polarity == "auto":
         if seed_df is not None:
-            pol, polarity_note, polarity_counts = _polarity_from_seeds(firsts, seed_df, one_d)
+            pol, note, counts = _polarity_from_seeds(firsts, seed_df, one_d)
         else:
-            pol, polarity_note, polarity_counts = _polarity_from_frames(firsts, one_d, rois)
+            pol, note, counts = _polarity_from_frames(firsts, one_d, rois)
         cfg = cfg.model_copy(update={"polarity": pol})
-        log.info("track: markers %s (%s)", pol, polarity_note)
+        polarity = (note, counts)
+        log.info("track: markers %s (%s)", pol, note)
     d = cfg.diameter_px
-    diameter_note = "given"
+    note = "given"
     if isinstance(d, dict):
         per_view_d = {v: float(d[v]) for v in views}
         d = per_view_d[views[0]]
-        diameter_note = "given per view"
+        note = "given per view"
     else:
         per_view_d = {v: d for v in views}
     if d is None:
@@ -1021,87 +998,88 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         else:
             est = {v: _diameter_without_seeds(im, cfg.polarity, rois.get(v)) for v, im in firsts.items()
                    if im is not None}
-        d, per_view_d, diameter_note = _view_diameters(est, views)
+        d, per_view_d, note = _view_diameters(est, views)
         log.info("track: marker diameter %s (%s)", ", ".join(f"{v} {x:.2f} px" for v, x in per_view_d.items())
-                 if len(set(per_view_d.values())) > 1 else f"{d:.2f} px", diameter_note)
-    del firsts
-    together = _seeds_together(seed_df, per_view_d) if seed_df is not None else []
-    together_warning = None
-    if together:
-        # said (logged) before the run: a marker seeded twice ends "not found in any frame" after it
-        from ..quality import warning
-        together_warning = warning(
-            "seeds-together",
-            "track: seeds within half a marker diameter of each other (one marker seeded twice under two names, "
-            "or two markers overlapping in the first frame): "
-            + "; ".join(f"{a} and {b} in {v}, {dist:.2g} px" for v, a, b, dist, _ in together), log,
-            pairs=[{"view": v, "markers": [a, b], "distance_px": dist} for v, a, b, dist, _ in together])
-    det = DetectionSettings(k_sigma=cfg.detection.k_sigma, window_k_sigma=cfg.detection.window_k_sigma,
-                            min_snr=cfg.detection.min_snr, method=cfg.detection.method,
-                            max_elongation=cfg.detection.max_elongation, blur_px=cfg.detection.blur_px,
-                            max_sigma_factor=cfg.detection.max_sigma_factor,
-                            parity=cfg.detection.parity, minmass=cfg.detection.minmass,
-                            background=cfg.detection.background)
-    if det.parity == "trackpy" and (det.method != "centroid" or seed_df is not None):
+                 if len(set(per_view_d.values())) > 1 else f"{d:.2f} px", note)
+    return cfg, polarity, (d, per_view_d, note)
+
+
+def _detection_settings(cfg, d: float, diameter_note: str, seeded: bool, config_path):
+    """The :class:`~bsipipe.imaging.detect.DetectionSettings` of the config's ``detection``,
+    trackpy parity checked against the method, the seeds and the diameter."""
+    from ..imaging.detect import DetectionSettings
+    c = cfg.detection
+    det = DetectionSettings(k_sigma=c.k_sigma, window_k_sigma=c.window_k_sigma, min_snr=c.min_snr, method=c.method,
+                            max_elongation=c.max_elongation, blur_px=c.blur_px, max_sigma_factor=c.max_sigma_factor,
+                            parity=c.parity, minmass=c.minmass, background=c.background)
+    if det.parity == "trackpy" and (det.method != "centroid" or seeded):
         raise InputError("detection.parity 'trackpy' is trackpy's locate: it needs method 'centroid' and "
                          "automatic detection (no seeds)", path=config_path, key="detection.parity")
     if det.parity == "trackpy" and not (float(d).is_integer() and int(d) % 2 == 1):
         raise InputError(f"detection.parity 'trackpy' needs an odd whole diameter, as trackpy.locate does; the "
                          f"diameter is {d:g} px ({diameter_note}): give --diameter-px", path=config_path,
                          key="diameter_px")
-    tk = TrackSettings(**cfg.tracking.model_dump())
+    return det
 
-    # frames decode on other threads while the tracker works: the other cores are taken, and
-    # OpenCV's own thread pool on whole-frame morphology would compete with the readers
-    # (measured with one reader: about 15 % more CPU for no shorter wall time on two cores)
-    import cv2
-    cv2_threads = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
-        tables, events, info, first_images, frame_hashes = _track_views(
-            cfg, views, seed_df, per_view_d, det, tk, progress, rois)
-    finally:
-        cv2.setNumThreads(cv2_threads)
-    table = pd.concat(tables, ignore_index=True)
-    del tables          # the per-view tables: a second copy of the 2-D table for the rest of the run
-    if seed_df is not None:  # a seed that finds nothing in any frame is a wrong seed, not a result
-        found_any = table.groupby(["view", "marker"])["found"].any()
-        for v, m, x, y in seed_df[["view", "marker", "x_px", "y_px"]].itertuples(index=False):
-            if not found_any.get((v, m), False):
-                twin = [b if a == m else a for vv, a, b, _, _ in together if vv == v and m in (a, b)]
-                hint = (f"; its seed lies within half a diameter of the seed of {twin[0]!r}: one marker seeded "
-                        "twice under two names?" if twin else "")
-                raise ProcessingError(f"marker {m!r} was not found in any of the {info[v]['n_frames']} frames of "
-                                      f"view {v!r} (seeded at ({x:g}, {y:g}) px): check the seed, --polarity and "
-                                      f"--diameter-px{hint}", path=cfg.seeds)
-    if table.empty or not table["found"].any():
-        raise ProcessingError("no marker was found in any frame (check --polarity and --diameter-px)",
-                              path=next(iter(cfg.views.values())))
 
-    loop_dict = None
-    points3d = None
-    fit = None
-    cross_view = None
-    warnings: list[dict] = []
-    if together_warning is not None:
-        warnings.append(together_warning)
+def _check_seeds_found(table: pd.DataFrame, seed_df, together: list, info: dict, path) -> None:
+    """A seed that finds nothing in any frame is a wrong seed, not a result."""
+    found_any = table.groupby(["view", "marker"])["found"].any()
+    for v, m, x, y in seed_df[["view", "marker", "x_px", "y_px"]].itertuples(index=False):
+        if not found_any.get((v, m), False):
+            twin = [b if a == m else a for vv, a, b, _, _ in together if vv == v and m in (a, b)]
+            hint = (f"; its seed lies within half a diameter of the seed of {twin[0]!r}: one marker seeded "
+                    "twice under two names?" if twin else "")
+            raise ProcessingError(f"marker {m!r} was not found in any of the {info[v]['n_frames']} frames of "
+                                  f"view {v!r} (seeded at ({x:g}, {y:g}) px): check the seed, --polarity and "
+                                  f"--diameter-px{hint}", path=path)
+
+
+def _seed_warnings(seed_df, polarity: str, polarity_note: str, polarity_counts) -> list[dict]:
+    """Warnings about the seeds and the markers' polarity, known before the tracks are."""
+    from ..quality import warning
+    out = []
     later = seed_df.attrs.get("later") if seed_df is not None else None
     if later:
-        from ..quality import warning
-        warnings.append(warning(
+        out.append(warning(
             "seeds-after-first-frame",
             "track: the XMALab seeds file places these markers only in later frames, so they are not followed "
             "in that view: " + "; ".join(f"{v}: " + ", ".join(f"{m} (first at frame {f})" for m, f in ms.items())
                                         for v, ms in later.items())
             + " (seeds are the markers' positions in the first frame: click them there, where they would be)",
             log, markers=later))
-    if polarity_counts is not None and cfg.polarity == "bright":
-        from ..quality import warning
-        warnings.append(warning(
+    if polarity_counts is not None and polarity == "bright":
+        out.append(warning(
             "bright-markers", f"track: the markers are brighter than their surroundings ({polarity_note}; "
             "raw X-ray frames show steel beads dark: inverted or processed frames?): tracked as bright markers "
             "(--polarity dark to override)", log, **polarity_counts))
-    counts = {v: info[v]["n_frames"] for v in views}
+    return out
+
+
+def _frame_rates(table: pd.DataFrame) -> dict[str, float]:
+    """Each view's frame rate from its time stamps: the slope of time on frame number (a
+    container's time stamps rounded to its time base, intervals of 0.24 and 0.28 s for 0.25 s
+    frames, do not bias it, as a median of the intervals is)."""
+    rates = {}
+    for v, g in table.groupby("view", sort=False):
+        t = g.drop_duplicates("frame").sort_values("frame")
+        ts, fs = t["time_s"].to_numpy(float), t["frame"].to_numpy(float)
+        ok = np.isfinite(ts)
+        if ok.sum() >= 2 and np.ptp(fs[ok]) > 0:
+            slope = float(np.polyfit(fs[ok], ts[ok], 1)[0])
+            if slope > 0:
+                rates[v] = 1.0 / slope
+    return rates
+
+
+def _sequence_warnings(table: pd.DataFrame, events: list[dict], cfg, views, info: dict, seeded: bool):
+    """What the frames themselves tell against the tracks: frames missing from the numbering
+    (their rows added to the table, status missing-frame), frames without any marker, views
+    of different lengths or frame rates, lossy compression, a jolting picture.  Returns
+    ``(table, warnings)``."""
+    from ..io.images import lossy_compression
+    from ..quality import warning
+    out = []
     missing = {}
     for v, g in table.groupby("view", sort=False):
         fr = np.unique(g["frame"].to_numpy())
@@ -1111,8 +1089,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         # a frame the recorder dropped (its number missing from the files' names): its index
         # stays empty, so the frames after it still pair with the other view's by index; the
         # 2-D table keeps a row per frame and marker (not found, status missing-frame)
-        from ..quality import warning
-        warnings.append(warning(
+        out.append(warning(
             "missing-frames",
             "track: frames missing from the numbering of the files or the source's time stamps ("
             + _frames_listed(missing) + "): their rows are empty (status missing-frame, no 3-D point), and the later frames keep their "
@@ -1121,55 +1098,40 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         table = _missing_frame_rows(table, missing, cfg.fps, views)
     empty = _frames_without_markers(table)
     if empty:
-        from ..quality import warning
-        warnings.append(warning(
+        out.append(warning(
             "frames-without-markers",
             "track: frames in which no marker was found, between frames where they were ("
             + _frames_listed(empty) + "): a frame without its picture (a missed exposure, a black or flashed frame) more likely than "
               "every marker hidden at once; the markers were followed across them (lost and refound events), "
               "the frames have no 3-D point from that view",
             log, frames=empty))
+    counts = {v: info[v]["n_frames"] for v in views}
     last = {v: int(table.loc[table["view"] == v, "frame"].max()) for v in views}
     if len(set(counts.values())) > 1 and len(set(last.values())) > 1:
         # e.g. a video cut short within its header's tolerance, or a frame file missing: the
         # views' frames are paired by index (and time stamps), so the shorter view's end is
         # where stereo stops
-        from ..quality import warning
-        warnings.append(warning("frame-count-mismatch",
-                                "track: the views hold different numbers of frames ("
-                                + ", ".join(f"{v} {n}" for v, n in counts.items())
-                                + "); frames are paired by index and time, the longer views' last frames "
-                                  "have no partner", log, n_frames=counts))
-    rates = {}
-    for v, g in table.groupby("view", sort=False):
-        t = g.drop_duplicates("frame").sort_values("frame")
-        ts, fs = t["time_s"].to_numpy(float), t["frame"].to_numpy(float)
-        ok = np.isfinite(ts)
-        # the slope of time on frame number: a container's time stamps rounded to its time
-        # base (intervals of 0.24 and 0.28 s for 0.25 s frames) do not bias it, as a median
-        # of the intervals is
-        if ok.sum() >= 2 and np.ptp(fs[ok]) > 0:
-            slope = float(np.polyfit(fs[ok], ts[ok], 1)[0])
-            if slope > 0:
-                rates[v] = 1.0 / slope
+        out.append(warning("frame-count-mismatch",
+                           "track: the views hold different numbers of frames ("
+                           + ", ".join(f"{v} {n}" for v, n in counts.items())
+                           + "); frames are paired by index and time, the longer views' last frames "
+                             "have no partner", log, n_frames=counts))
+    rates = _frame_rates(table)
     if len(rates) > 1 and max(rates.values()) > 1.01 * min(rates.values()):
         # time stamps from the sources (video, DICOM) at different rates: frame k of one view
         # is not taken at frame k's time in the other.  Stereo pairs frames by index; the
         # loop's view-time-offset interpolates one view's tracks to the other's times (offset
         # 0 if the clocks agree), over the frames both views hold
-        from ..quality import warning
-        warnings.append(warning(
+        out.append(warning(
             "frame-rate-mismatch",
             "track: the views' time stamps give different frame rates ("
             + ", ".join(f"{v} {r:.3g}" for v, r in rates.items())
             + " frames/s): frames are paired by index, and only where the loop takes view-time-offset are "
               "one view's tracks interpolated to the other's times; 3-D points exist for the frame numbers "
               "both views hold, not for the whole of the longer recording", log, frames_per_s=rates))
-    from ..io.images import lossy_compression
     lossy = {v: c for v in views if (c := lossy_compression(cfg.views[v])) is not None}
     if lossy:
-        from ..quality import warning
-        warnings.append(warning(
+        out.append(warning(
             "lossy-frames",
             "track: " + ", ".join(f"{v}'s frames are lossily compressed ({c})" for v, c in lossy.items())
             + ": the codec removes the pixel noise the detector sets its thresholds and each marker's SNR and "
@@ -1178,182 +1140,187 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
               "1 px, 99.4 % from their PNG frames); record lossless frames (PNG, TIFF, FFV1) where you can"
             + ("; without seeds the codec's block artefacts start tracks of their own (the bench twin as an mp4v "
                "video: 39,958 positions of clutter without seeds, 94 % of the markers within 1 px with them): "
-               "give seeds" if seed_df is None else ""),
-            log, views=lossy, seeds=seed_df is not None))
+               "give seeds" if not seeded else ""),
+            log, views=lossy, seeds=seeded))
     shifts: dict[str, list] = {}
     for e in events:
         if e["kind"] == "frame-shift":
             shifts.setdefault(e["view"], []).append(float(np.hypot(e["dx_px"], e["dy_px"])))
     if shifts:
-        from ..quality import warning
-        warnings.append(warning(
+        out.append(warning(
             "frame-shifts",
             "track: the whole picture jolted (a C-arm's vibration, the head moving) in "
             + ", ".join(f"{len(s)} frame(s) of {v} (up to {max(s):.1f} px)" for v, s in shifts.items())
             + " (frame-shift events): the markers were followed across the jolts, but their 2-D positions, "
               "and any 3-D point triangulated from them, carry the jolts (nothing corrects them)",
             log, views={v: {"n_frames": len(s), "max_px": max(s)} for v, s in shifts.items()}))
-    if rig is not None:
-        from ..imaging.track_effects import (CAPTURE_COLUMNS, WindowSource, close_stereo_loop,
-                                             match_tracks_across_views, stereo_data)
-        from ..imaging.triangulate import lowpass_trajectories
-        vpair = (rig[pair[0]], rig[pair[1]])
-        if seed_df is None:
-            # automatic tracks are named per view: pair them across the views by their ray gaps
-            names = match_tracks_across_views(table, vpair)
-            sel = table["view"] == pair[1]
-            table.loc[sel, "marker"] = table.loc[sel, "marker"].map(names)
-            for e in events:
-                if e["view"] == pair[1] and e.get("marker") in names:
-                    e["marker"] = names[e["marker"]]
-            cross_view = {"view": pair[1], "renamed": names,
-                          "rule": "median |ray gap| (least over whole-frame shifts of up to 3 frames), pairing of least "
-                                   "total cost, a track left unpaired above 5x the lower quartile of the best costs "
-                                   "(0.3-1 mm)"}
-        sub = table[table["view"].isin(pair)].copy()
-        if sub["time_s"].isna().all():
-            sub["time_s"] = sub["frame"].astype(float)     # no clock: time in frames
-            time_unit = "frame"
-        else:
-            time_unit = "s"
-        data = stereo_data(sub, vpair)
-        del sub
-        if det.parity == "none":
-            # the frames can be searched again in windows, for the loop's track-capture
-            from ..imaging.detect import FieldOfView
-            data.windows = WindowSource({v: cfg.views[v] for v in pair}, {v: per_view_d[v] for v in pair},
-                                        cfg.polarity, det, channel=cfg.channel,
-                                        workers=decode_workers(),
-                                        rois={v: rois[v] for v in pair if isinstance(rois.get(v), FieldOfView)})
-        if not data.markers:
-            raise InputError(f"no marker is tracked in both {pair[0]} and {pair[1]} (the seeds must use the same "
-                             "marker names in both views)", path=cfg.seeds)
-        if seed_df is not None:
-            # a marker seeded in one of the two views has no 3-D point: said, not left out silently
-            names = {v: list(dict.fromkeys(seed_df.loc[seed_df["view"] == v, "marker"])) for v in pair}
-            alone = {v: [m for m in names[v] if m not in set(names[o])] for v, o in (pair, pair[::-1])}
-            alone = {v: ms for v, ms in alone.items() if ms}
-            if alone:
-                from ..quality import warning
-                warnings.append(warning(
-                    "single-view-markers",
-                    "track: markers seeded in only one of the calibrated views are tracked in 2-D there with no "
-                    "3-D point: " + "; ".join(f"{', '.join(ms)} ({v} only)" for v, ms in alone.items())
-                    + " (seed each in both views under the same name to triangulate it)", log, markers=alone))
-        loop_dict, fit, _ = close_stereo_loop(data, loop=cfg.loop, max_offset_s=cfg.max_offset_s)
-        from ..imaging.track_effects import orientation_check
-        turned = orientation_check(data, {v: info[v]["frame_shape_px"] for v in pair})
-        if turned is not None:
-            from ..quality import warning
-            what = (f"the frames of {turned['view']} look swapped against the calibration (each view's frames "
-                    "are the other camera's)" if turned["orientation"] == "swapped" else
-                    f"{turned['view']}'s frames look {turned['orientation']} against the calibration")
+    return table, out
+
+
+def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, rig, pair, seed_df,
+            per_view_d: dict, det, rois: dict, info: dict) -> dict:
+    """Triangulate the calibrated pair and close the loop on it
+    (:func:`~bsipipe.imaging.track_effects.close_stereo_loop`); what the loop finds (identity
+    swaps, a track held by something else, the frames' common shifts) is corrected in the 2-D
+    ``table`` too.  Automatic tracks are first named across the views.  Appends to ``events``
+    and ``warnings``; returns ``table``, ``points3d``, ``loop``, ``fit``, ``data``,
+    ``time_unit``, ``vpair`` and ``cross_view`` (the renaming, or None)."""
+    from ..imaging.detect import FieldOfView
+    from ..imaging.track_effects import (CAPTURE_COLUMNS, WindowSource, close_stereo_loop,
+                                         match_tracks_across_views, orientation_check, stereo_data)
+    from ..quality import warning
+    vpair = (rig[pair[0]], rig[pair[1]])
+    cross_view = None
+    if seed_df is None:
+        # automatic tracks are named per view: pair them across the views by their ray gaps
+        names = match_tracks_across_views(table, vpair)
+        sel = table["view"] == pair[1]
+        table.loc[sel, "marker"] = table.loc[sel, "marker"].map(names)
+        for e in events:
+            if e["view"] == pair[1] and e.get("marker") in names:
+                e["marker"] = names[e["marker"]]
+        cross_view = {"view": pair[1], "renamed": names,
+                      "rule": "median |ray gap| (least over whole-frame shifts of up to 3 frames), pairing of least "
+                               "total cost, a track left unpaired above 5x the lower quartile of the best costs "
+                               "(0.3-1 mm)"}
+    sub = table[table["view"].isin(pair)].copy()
+    if sub["time_s"].isna().all():
+        sub["time_s"] = sub["frame"].astype(float)     # no clock: time in frames
+        time_unit = "frame"
+    else:
+        time_unit = "s"
+    data = stereo_data(sub, vpair)
+    del sub
+    if det.parity == "none":
+        # the frames can be searched again in windows, for the loop's track-capture
+        data.windows = WindowSource({v: cfg.views[v] for v in pair}, {v: per_view_d[v] for v in pair},
+                                    cfg.polarity, det, channel=cfg.channel,
+                                    workers=decode_workers(),
+                                    rois={v: rois[v] for v in pair if isinstance(rois.get(v), FieldOfView)})
+    if not data.markers:
+        raise InputError(f"no marker is tracked in both {pair[0]} and {pair[1]} (the seeds must use the same "
+                         "marker names in both views)", path=cfg.seeds)
+    if seed_df is not None:
+        # a marker seeded in one of the two views has no 3-D point: said, not left out silently
+        names = {v: list(dict.fromkeys(seed_df.loc[seed_df["view"] == v, "marker"])) for v in pair}
+        alone = {v: [m for m in names[v] if m not in set(names[o])] for v, o in (pair, pair[::-1])}
+        alone = {v: ms for v, ms in alone.items() if ms}
+        if alone:
             warnings.append(warning(
-                "view-orientation",
-                f"track: {what}: "
-                f"the rays' median gap is {turned['median_gap_mm']:.3g} mm with the positions so turned, "
-                f"{turned['median_gap_as_is_mm']:.3g} mm as the frames are ({turned['n_points']} two-view points); "
-                "the 3-D points are triangulated as the frames are: "
-                + ("give each --view its own camera's frames" if turned["orientation"] == "swapped" else
-                   "export the frames as the calibration images were, or calibrate from frames oriented as these"),
-                log, **turned))
-        loop_dict["time_unit"] = time_unit
-        points3d = fit.points.copy()
-        if time_unit == "frame":
-            points3d["time_s"] = np.nan
-        # identity swaps found by the loop are corrected in the 2-D table too
-        for sw in fit.swaps:
-            a, b = sw["markers"]
-            sel = (table["view"] == sw["view"]) & table["frame"].between(sw["first_frame"], sw["last_frame"])
-            ia, ib = sel & (table["marker"] == a), sel & (table["marker"] == b)
-            table.loc[ia, "marker"], table.loc[ib, "marker"] = b, a
-            events.append({"view": sw["view"], "frame": sw["first_frame"], "marker": a, "kind": "identity-swap",
-                           "other": b, "last_frame": sw["last_frame"],
-                           "detail": "names exchanged by the loop (ray gaps)"})
-        # a track the loop found held by something else (track-capture): the re-found positions
-        # replace it in the 2-D table; the frames where the marker's image merged with what held
-        # it are left empty (status merged)
-        for cp in fit.captures:
-            key = (table["view"] == cp["view"]) & (table["marker"] == cp["marker"])
-            new = pd.DataFrame({"frame": cp["_frames"], **cp["_columns"]}).set_index("frame")
-            rows = table.index[key & table["frame"].isin(cp["_frames"])]
-            at = table.loc[rows, "frame"].to_numpy()
-            for c in CAPTURE_COLUMNS:
-                table.loc[rows, c] = new[c].reindex(at).to_numpy()
-            table.loc[rows, "found"] = True
-            table.loc[rows, "status"] = "found"
-            gone = table.index[key & table["frame"].isin(cp["_dropped"])]
-            table.loc[gone, ["x_px", "y_px"]] = np.nan
-            table.loc[gone, "found"] = False
-            table.loc[gone, "status"] = "merged"
-            events.append({"view": cp["view"], "frame": cp["first_frame"], "marker": cp["marker"],
-                           "kind": "track-capture", "last_frame": cp["last_frame"], "n_refound": cp["n_refound"],
-                           "n_left_out": cp["n_left_out"],
-                           "detail": "the track was held by something else in its window: the marker was found "
-                                     "again along the other view's rays by the loop"})
-        if fit.frame_shifts:
-            # each view's common shift per frame (frame-shift): a column of the 2-D table, taken
-            # out of the smoothed centres and of the 3-D points
-            sh = pd.concat([pd.DataFrame({"view": v, "frame": data.frames, "shift_x_px": o[:, 0], "shift_y_px": o[:, 1]})
-                            for v, o in fit.frame_shifts.items()]).set_index(["view", "frame"])
-            idx = pd.MultiIndex.from_arrays([table["view"].astype(str), table["frame"]])
-            for c in ("shift_x_px", "shift_y_px"):
-                table[c] = sh[c].reindex(idx).to_numpy()
-            n_sh = {v: int((o != 0).any(axis=1).sum()) for v, o in fit.frame_shifts.items()}
-            for w in warnings:
-                if w["code"] == "frame-shifts":
-                    w["message"] = (w["message"].replace(" (nothing corrects them)", "")
-                                    + "; the loop's frame-shift took each view's common shift per frame out of the "
-                                      "3-D points and the smoothed 2-D centres (columns shift_x_px, shift_y_px)")
-                    w["corrected_by_loop"] = True
-            log.info("track: frame-shift: %s", ", ".join(f"{v} {n} frames" for v, n in n_sh.items()))
-        table = table.sort_values(["view", "frame", "marker"], kind="stable")
-        table["view"] = pd.Categorical(table["view"], categories=views)
-        table = table.sort_values(["view", "frame"], kind="stable")
-        table["view"] = table["view"].astype(str)
+                "single-view-markers",
+                "track: markers seeded in only one of the calibrated views are tracked in 2-D there with no "
+                "3-D point: " + "; ".join(f"{', '.join(ms)} ({v} only)" for v, ms in alone.items())
+                + " (seed each in both views under the same name to triangulate it)", log, markers=alone))
+    loop_dict, fit, _ = close_stereo_loop(data, loop=cfg.loop, max_offset_s=cfg.max_offset_s)
+    turned = orientation_check(data, {v: info[v]["frame_shape_px"] for v in pair})
+    if turned is not None:
+        what = (f"the frames of {turned['view']} look swapped against the calibration (each view's frames "
+                "are the other camera's)" if turned["orientation"] == "swapped" else
+                f"{turned['view']}'s frames look {turned['orientation']} against the calibration")
+        warnings.append(warning(
+            "view-orientation",
+            f"track: {what}: "
+            f"the rays' median gap is {turned['median_gap_mm']:.3g} mm with the positions so turned, "
+            f"{turned['median_gap_as_is_mm']:.3g} mm as the frames are ({turned['n_points']} two-view points); "
+            "the 3-D points are triangulated as the frames are: "
+            + ("give each --view its own camera's frames" if turned["orientation"] == "swapped" else
+               "export the frames as the calibration images were, or calibrate from frames oriented as these"),
+            log, **turned))
+    loop_dict["time_unit"] = time_unit
+    points3d = fit.points.copy()
+    if time_unit == "frame":
+        points3d["time_s"] = np.nan
+    # identity swaps found by the loop are corrected in the 2-D table too
+    for sw in fit.swaps:
+        a, b = sw["markers"]
+        sel = (table["view"] == sw["view"]) & table["frame"].between(sw["first_frame"], sw["last_frame"])
+        ia, ib = sel & (table["marker"] == a), sel & (table["marker"] == b)
+        table.loc[ia, "marker"], table.loc[ib, "marker"] = b, a
+        events.append({"view": sw["view"], "frame": sw["first_frame"], "marker": a, "kind": "identity-swap",
+                       "other": b, "last_frame": sw["last_frame"],
+                       "detail": "names exchanged by the loop (ray gaps)"})
+    # a track the loop found held by something else (track-capture): the re-found positions
+    # replace it in the 2-D table; the frames where the marker's image merged with what held
+    # it are left empty (status merged)
+    for cp in fit.captures:
+        key = (table["view"] == cp["view"]) & (table["marker"] == cp["marker"])
+        new = pd.DataFrame({"frame": cp["_frames"], **cp["_columns"]}).set_index("frame")
+        rows = table.index[key & table["frame"].isin(cp["_frames"])]
+        at = table.loc[rows, "frame"].to_numpy()
+        for c in CAPTURE_COLUMNS:
+            table.loc[rows, c] = new[c].reindex(at).to_numpy()
+        table.loc[rows, "found"] = True
+        table.loc[rows, "status"] = "found"
+        gone = table.index[key & table["frame"].isin(cp["_dropped"])]
+        table.loc[gone, ["x_px", "y_px"]] = np.nan
+        table.loc[gone, "found"] = False
+        table.loc[gone, "status"] = "merged"
+        events.append({"view": cp["view"], "frame": cp["first_frame"], "marker": cp["marker"],
+                       "kind": "track-capture", "last_frame": cp["last_frame"], "n_refound": cp["n_refound"],
+                       "n_left_out": cp["n_left_out"],
+                       "detail": "the track was held by something else in its window: the marker was found "
+                                 "again along the other view's rays by the loop"})
+    if fit.frame_shifts:
+        # each view's common shift per frame (frame-shift): a column of the 2-D table, taken
+        # out of the smoothed centres and of the 3-D points
+        sh = pd.concat([pd.DataFrame({"view": v, "frame": data.frames, "shift_x_px": o[:, 0], "shift_y_px": o[:, 1]})
+                        for v, o in fit.frame_shifts.items()]).set_index(["view", "frame"])
+        idx = pd.MultiIndex.from_arrays([table["view"].astype(str), table["frame"]])
+        for c in ("shift_x_px", "shift_y_px"):
+            table[c] = sh[c].reindex(idx).to_numpy()
+        n_sh = {v: int((o != 0).any(axis=1).sum()) for v, o in fit.frame_shifts.items()}
+        for w in warnings:
+            if w["code"] == "frame-shifts":
+                w["message"] = (w["message"].replace(" (nothing corrects them)", "")
+                                + "; the loop's frame-shift took each view's common shift per frame out of the "
+                                  "3-D points and the smoothed 2-D centres (columns shift_x_px, shift_y_px)")
+                w["corrected_by_loop"] = True
+        log.info("track: frame-shift: %s", ", ".join(f"{v} {n} frames" for v, n in n_sh.items()))
+    table = table.sort_values(["view", "frame", "marker"], kind="stable")
+    table["view"] = pd.Categorical(table["view"], categories=list(cfg.views))
+    table = table.sort_values(["view", "frame"], kind="stable")
+    table["view"] = table["view"].astype(str)
+    return {"table": table, "points3d": points3d, "loop": loop_dict, "fit": fit, "data": data,
+            "time_unit": time_unit, "vpair": vpair, "cross_view": cross_view}
 
-    smoothing = None
-    if cfg.smooth:
-        table, smoothing = _smooth(table)
-        if fit is not None:
-            # triangulate the smoothed centres with the loop's final model (offset as estimated)
-            from ..imaging.track_effects import StereoSpec, stereo_fit   # stereo_data: imported above
-            sub = table[table["view"].isin(pair)].copy()
-            ok = sub["x_px_smooth"].notna() & sub["y_px_smooth"].notna()
-            sub["x_px"], sub["y_px"] = sub["x_px_smooth"], sub["y_px_smooth"]
-            sub["found"] = sub["found"].astype(bool) & ok
-            if time_unit == "frame":
-                sub["time_s"] = sub["frame"].astype(float)
-            sdata = stereo_data(sub, vpair)
-            del sub
-            fit = stereo_fit(sdata, StereoSpec(occlusion=fit.spec.occlusion),
-                             fixed_offset_s=fit.params.get("view_time_offset_s"),
-                             fixed_drift=fit.params.get("view_clock_drift"), max_offset_s=cfg.max_offset_s)
-            raw = points3d.set_index(["frame", "marker"])[["x_mm", "y_mm", "z_mm", "ray_gap_mm"]]
-            points3d = fit.points.copy()
-            if time_unit == "frame":
-                points3d["time_s"] = np.nan
-            raw = raw.reindex(pd.MultiIndex.from_frame(points3d[["frame", "marker"]]))
-            for c in ("x_mm", "y_mm", "z_mm", "ray_gap_mm"):
-                points3d[c + "_raw"] = raw[c].to_numpy()
-            two = points3d["n_views"] == 2
-            smoothing["ray_gap_rms_mm"] = (float(np.sqrt(np.mean(points3d.loc[two, "ray_gap_mm"] ** 2)))
-                                           if two.any() else None)
-            smoothing["ray_gap_rms_mm_raw"] = loop_dict["final"]["ray_gap_rms_mm"]
-            smoothing["stereo_check"] = _stereo_check(table, points3d, vpair, pair, smoothing["tracks"])
-            _point_sds(points3d, table, vpair, pair)
-    if points3d is not None:
-        if cfg.lowpass_hz is not None:
-            rate = cfg.fps or (1.0 / np.nanmedian(np.diff(data.ta)) if time_unit == "s" else None)
-            if rate is None:
-                raise InputError("--lowpass-hz needs a frame rate (--fps or time stamps)", key="lowpass_hz")
-            try:
-                points3d = lowpass_trajectories(points3d, cfg.lowpass_hz, rate)
-            except ValueError as e:
-                raise InputError(str(e), key="lowpass_hz") from None
-        warnings += _ray_gap_warnings(points3d, cfg.max_ray_gap_mm)
 
-    # per-marker summary: signal-to-noise, found fraction, events
+def _smoothed_points(table: pd.DataFrame, st: dict, smoothing: dict, max_offset_s: float | None, pair) -> pd.DataFrame:
+    """The smoothed centres triangulated with the loop's final model (its offset and drift as
+    estimated), the raw points kept as ``*_raw`` columns; the stereo check of the error model
+    (``smoothing['stereo_check']``, ``sd_px`` scaled in ``table``) and each point's sd."""
+    from ..imaging.track_effects import StereoSpec, stereo_data, stereo_fit
+    fit, vpair = st["fit"], st["vpair"]
+    sub = table[table["view"].isin(pair)].copy()
+    ok = sub["x_px_smooth"].notna() & sub["y_px_smooth"].notna()
+    sub["x_px"], sub["y_px"] = sub["x_px_smooth"], sub["y_px_smooth"]
+    sub["found"] = sub["found"].astype(bool) & ok
+    if st["time_unit"] == "frame":
+        sub["time_s"] = sub["frame"].astype(float)
+    sdata = stereo_data(sub, vpair)
+    del sub
+    fit = stereo_fit(sdata, StereoSpec(occlusion=fit.spec.occlusion),
+                     fixed_offset_s=fit.params.get("view_time_offset_s"),
+                     fixed_drift=fit.params.get("view_clock_drift"), max_offset_s=max_offset_s)
+    raw = st["points3d"].set_index(["frame", "marker"])[["x_mm", "y_mm", "z_mm", "ray_gap_mm"]]
+    points3d = fit.points.copy()
+    if st["time_unit"] == "frame":
+        points3d["time_s"] = np.nan
+    raw = raw.reindex(pd.MultiIndex.from_frame(points3d[["frame", "marker"]]))
+    for c in ("x_mm", "y_mm", "z_mm", "ray_gap_mm"):
+        points3d[c + "_raw"] = raw[c].to_numpy()
+    two = points3d["n_views"] == 2
+    smoothing["ray_gap_rms_mm"] = (float(np.sqrt(np.mean(points3d.loc[two, "ray_gap_mm"] ** 2)))
+                                   if two.any() else None)
+    smoothing["ray_gap_rms_mm_raw"] = st["loop"]["final"]["ray_gap_rms_mm"]
+    smoothing["stereo_check"] = _stereo_check(table, points3d, vpair, pair, smoothing["tracks"])
+    _point_sds(points3d, table, vpair, pair)
+    st["fit"] = fit
+    return points3d
+
+
+def _marker_summary(table: pd.DataFrame, events: list[dict], fit) -> dict:
+    """track.json's ``markers``: per marker and view its found frames, signal-to-noise and
+    events; per marker its 3-D points' counts, ray gap and reprojection error."""
     markers: dict = {}
     for (v, m), g in table.groupby(["view", "marker"], sort=False):
         snr = g.loc[g["found"], "snr"]
@@ -1372,6 +1339,126 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
                 "n_points": int(np.isfinite(g["x_mm"]).sum()), "n_two_view": int(len(two)),
                 "ray_gap_rms_mm": float(np.sqrt(np.mean(two["ray_gap_mm"] ** 2))) if len(two) else None,
                 "reprojection_rms_px": float(np.sqrt(np.mean(two["reproj_err_px"] ** 2))) if len(two) else None}
+    return markers
+
+
+def _add_figures(rs, table: pd.DataFrame, points3d, first_images: dict, info: dict, rois: dict, seed_df,
+                 per_view_d: dict) -> None:
+    """``track.png`` (the trajectories) and ``overlay.png`` (each view's first frame with the
+    detections and the region searched), both laid out with fixed margins: drawn once, not
+    twice for a tight crop."""
+    from ..imaging.detect import FieldOfView
+    from ..report.track_figure import overlay_figure, trajectories_figure
+    rs.add_figure("track.png", trajectories_figure(table, points3d, title="bsipipe track"), tight=False)
+    # the region each view was searched in: a given one, else the field found in its frames
+    regions = {}
+    for v in first_images:
+        fi = info.get(v, {}).get("field_of_view") or {}
+        if isinstance(rois.get(v), FieldOfView):
+            regions[v] = rois[v]
+        elif fi.get("found"):
+            regions[v] = FieldOfView(tuple(fi["shape"]), tuple(fi["centre_px"]), float(fi["radius_px"]), True)
+    first = {v: int(table.loc[table["view"] == v, "frame"].min()) for v in first_images}
+    rs.add_figure("overlay.png", overlay_figure(first_images, table, first, seed_df, per_view_d, regions), tight=False)
+
+
+def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diameter_px=None, seeds=None,
+        fps=None, loop=None, progress: bool = False, **extra) -> dict:
+    """The whole command; returns the ``track.json`` content (already written to ``out``).
+
+    Everything that can be checked before the frames are tracked is (the sources, the
+    calibration against the frames' size, the seeds, the markers' polarity and diameter);
+    then each view is tracked, the frames are checked against the tracks, the calibrated pair
+    is triangulated and the loop closed on it, the tracks are smoothed, and the results are
+    written together (:class:`~bsipipe.provenance.ResultSet`), ``track.json`` last."""
+    from ..imaging.track import TrackSettings
+    from ..provenance import ResultSet, provenance
+    from ..quality import warning
+
+    cfg = build_config(config_path, view=view, calibration=calibration, polarity=polarity,
+                       diameter_px=diameter_px, seeds=seeds, fps=fps, loop=loop, **extra)
+    views = list(cfg.views)
+    for v, p in cfg.views.items():
+        if not (os.path.exists(p) or any(c in p for c in "*?[")):
+            raise InputError(f"view {v}: no such file or folder", path=p)
+    # each view's first frame, for the seeds' check, the polarity and the diameter (then let go)
+    given_roi = _given_roi(cfg)
+    firsts = (_first_frames(cfg.views, cfg.channel)
+              if cfg.seeds or cfg.polarity == "auto" or cfg.diameter_px is None or cfg.calibration
+              or given_roi else {})
+    shapes = {v: None if im is None else im.shape for v, im in firsts.items()}
+    rois = _resolve_rois(cfg, shapes, config_path) if given_roi else _roi_per_view(cfg)
+    rig = pair = None
+    if cfg.calibration:
+        rig, pair = _read_calibration(cfg.calibration, views)
+        _check_frame_sizes(rig, pair, shapes, cfg.calibration)
+    seed_df = read_seeds(cfg.seeds, views, shapes) if cfg.seeds else None
+    if seed_df is not None:
+        outside = _seeds_outside(seed_df, rois)
+        if outside:
+            raise InputError("seeds outside their view's given region of interest (detection.roi): "
+                             + "; ".join(f"{m} in {v} at ({x:.1f}, {y:.1f})" for v, m, x, y in outside),
+                             path=cfg.seeds)
+    cfg, (polarity_note, polarity_counts), (d, per_view_d, diameter_note) = _marker_size(
+        cfg, views, firsts, seed_df, rois)
+    del firsts
+    together = _seeds_together(seed_df, per_view_d) if seed_df is not None else []
+    warnings: list[dict] = []
+    if together:
+        # said (logged) before the run: a marker seeded twice ends "not found in any frame" after it
+        warnings.append(warning(
+            "seeds-together",
+            "track: seeds within half a marker diameter of each other (one marker seeded twice under two names, "
+            "or two markers overlapping in the first frame): "
+            + "; ".join(f"{a} and {b} in {v}, {dist:.2g} px" for v, a, b, dist, _ in together), log,
+            pairs=[{"view": v, "markers": [a, b], "distance_px": dist} for v, a, b, dist, _ in together]))
+    det = _detection_settings(cfg, d, diameter_note, seed_df is not None, config_path)
+    tk = TrackSettings(**cfg.tracking.model_dump())
+
+    # frames decode on other threads while the tracker works: the other cores are taken, and
+    # OpenCV's own thread pool on whole-frame morphology would compete with the readers
+    # (measured with one reader: about 15 % more CPU for no shorter wall time on two cores)
+    import cv2
+    cv2_threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        tables, events, info, first_images, frame_hashes = _track_views(
+            cfg, views, seed_df, per_view_d, det, tk, progress, rois)
+    finally:
+        cv2.setNumThreads(cv2_threads)
+    table = pd.concat(tables, ignore_index=True)
+    del tables          # the per-view tables: a second copy of the 2-D table for the rest of the run
+    if seed_df is not None:
+        _check_seeds_found(table, seed_df, together, info, cfg.seeds)
+    if table.empty or not table["found"].any():
+        raise ProcessingError("no marker was found in any frame (check --polarity and --diameter-px)",
+                              path=next(iter(cfg.views.values())))
+    warnings += _seed_warnings(seed_df, cfg.polarity, polarity_note, polarity_counts)
+    table, more = _sequence_warnings(table, events, cfg, views, info, seed_df is not None)
+    warnings += more
+
+    st = None
+    points3d = fit = None
+    if rig is not None:
+        st = _stereo(table, events, warnings, cfg, rig, pair, seed_df, per_view_d, det, rois, info)
+        table, points3d, fit = st["table"], st["points3d"], st["fit"]
+    smoothing = None
+    if cfg.smooth:
+        table, smoothing = _smooth(table)
+        if st is not None:
+            points3d = _smoothed_points(table, st, smoothing, cfg.max_offset_s, pair)
+            fit = st["fit"]
+    if points3d is not None:
+        if cfg.lowpass_hz is not None:
+            rate = cfg.fps or (1.0 / np.nanmedian(np.diff(st["data"].ta)) if st["time_unit"] == "s" else None)
+            if rate is None:
+                raise InputError("--lowpass-hz needs a frame rate (--fps or time stamps)", key="lowpass_hz")
+            from ..imaging.triangulate import lowpass_trajectories
+            try:
+                points3d = lowpass_trajectories(points3d, cfg.lowpass_hz, rate)
+            except ValueError as e:
+                raise InputError(str(e), key="lowpass_hz") from None
+        warnings += _ray_gap_warnings(points3d, cfg.max_ray_gap_mm)
 
     rs = ResultSet(out, primary="track.json")
     cols2d = ["view", "frame", "marker", "x_px", "y_px", "time_s", "found", "status", "snr", "amplitude",
@@ -1389,15 +1476,16 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         "views": info,
         "xmalab_cameras": {f"cam{i + 1}": v for i, v in enumerate(views)},
         "diameter_px": d, "diameter_px_per_view": per_view_d, "diameter_source": diameter_note, "polarity": cfg.polarity, "polarity_source": polarity_note,
-        "markers": markers,
+        "markers": _marker_summary(table, events, fit),
         "events": events,
         "warnings": warnings,
     }
-    if cross_view is not None:
-        result["cross_view_names"] = cross_view
+    if st is not None and st["cross_view"] is not None:
+        result["cross_view_names"] = st["cross_view"]
     if smoothing is not None:
         result["smoothing"] = smoothing
     if points3d is not None:
+        loop_dict = st["loop"]
         cols3d = ["frame", "time_s", "marker", "x_mm", "y_mm", "z_mm", "ray_gap_mm", "ray_gap_signed_mm",
                   "reproj_err_px", f"reproj_{pair[0]}_px", f"reproj_{pair[1]}_px", "n_views", "source", "flag"]
         cols3d += [c for c in ("sd_x_mm", "sd_y_mm", "sd_z_mm") if c in points3d]
@@ -1418,21 +1506,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         result["loop"] = None
         result["loop_note"] = "no calibration: 2-D tracking only, nothing to triangulate or close the loop on"
     if cfg.figures:
-        from ..report.track_figure import overlay_figure, trajectories_figure
-        # both figures are laid out with fixed margins: drawn once, not twice for a tight crop
-        rs.add_figure("track.png", trajectories_figure(table, points3d, title="bsipipe track"), tight=False)
-        from ..imaging.detect import FieldOfView
-        # the region each view was searched in: a given one, else the field found in its frames
-        regions = {}
-        for v in first_images:
-            fi = info.get(v, {}).get("field_of_view") or {}
-            if isinstance(rois.get(v), FieldOfView):
-                regions[v] = rois[v]
-            elif fi.get("found"):
-                regions[v] = FieldOfView(tuple(fi["shape"]), tuple(fi["centre_px"]), float(fi["radius_px"]), True)
-        rs.add_figure("overlay.png", overlay_figure(first_images, table, {v: int(table.loc[table["view"] == v, "frame"].min())
-                                                                           for v in first_images},
-                                                    seed_df, per_view_d, regions), tight=False)
+        _add_figures(rs, table, points3d, first_images, info, rois, seed_df, per_view_d)
     inputs = ([p for p in cfg.views.values()] + [p for p in (cfg.calibration, cfg.seeds) if p]
               + roi_masks(cfg.detection.roi))
     result["provenance"] = provenance(cfg, inputs, command="track", known_hashes=frame_hashes)
