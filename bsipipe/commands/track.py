@@ -400,80 +400,6 @@ def _seeds_outside(seed_df: pd.DataFrame, rois: dict) -> list[tuple[str, str, fl
     return out
 
 
-def read_seeds(path, views: Sequence[str], frame_shapes: dict | None = None) -> pd.DataFrame:
-    """``seeds.csv`` (``view,marker,x_px,y_px``) or an XMALab 2-D CSV (first row; ``camN``
-    is the N-th view).  Errors name the file and line.  ``frame_shapes`` (view -> (h, w)):
-    a seed outside its view's image is an error."""
-    from ..io.xmalab import is_xmalab_2d, read_xmalab_2d
-    if is_xmalab_2d(path):
-        allx = read_xmalab_2d(path)
-        cams = {f"cam{i + 1}": v for i, v in enumerate(views)}
-        allx = allx[allx["view"].isin(list(cams)) & np.isfinite(allx["x_px"]) & np.isfinite(allx["y_px"])].copy()
-        allx["view"] = allx["view"].map(cams)
-        x = allx[allx["frame"] == 0]
-        x = x[["view", "marker", "x_px", "y_px"]].reset_index(drop=True)
-        # markers the file places only in later frames (clicked where they were visible): the
-        # seeds are frame 0's, so these are not followed in that view -- said, not dropped
-        # silently (``attrs["later"]``: view -> {marker: first frame}, for track.json's warning)
-        held = set(zip(x["view"], x["marker"]))
-        later: dict = {}
-        for (v, m), g in allx.groupby(["view", "marker"], sort=False):
-            if (v, m) not in held:
-                later.setdefault(v, {})[m] = int(g["frame"].min())
-        _check_seeds_inside(x, frame_shapes, path, lines=None)
-        if x.empty:
-            raise InputError("no marker has a position in frame 0 (the first row): the seeds are the markers' "
-                             "positions in the first frame", path=path)
-        x.attrs["later"] = later
-        return x
-    try:
-        df = pd.read_csv(path, dtype={"view": str, "marker": str})
-    except FileNotFoundError:
-        raise InputError("file not found", path=path) from None
-    except (OSError, ValueError, pd.errors.ParserError, UnicodeDecodeError) as e:
-        raise InputError(f"cannot read seeds: {e}", path=path) from None
-    df.columns = [str(c).strip() for c in df.columns]
-    miss = [c for c in ("view", "marker", "x_px", "y_px") if c not in df.columns]
-    if miss:
-        raise InputError(f"missing column(s) {', '.join(miss)}; expected view,marker,x_px,y_px", path=path, line=1)
-    if df.empty:
-        raise InputError("no seeds", path=path)
-    for c in ("x_px", "y_px"):
-        v = pd.to_numeric(df[c], errors="coerce")
-        bad = np.flatnonzero(~np.isfinite(v.to_numpy(float)))
-        if len(bad):
-            raise InputError(f"{c} is not a number: {df[c].iloc[bad[0]]!r}", path=path, line=int(bad[0]) + 2)
-        df[c] = v.astype(float)
-    for c in ("view", "marker"):
-        if df[c].isna().any():
-            i = int(np.flatnonzero(df[c].isna().to_numpy())[0])
-            raise InputError(f"empty {c}", path=path, line=i + 2)
-        df[c] = df[c].astype(str).str.strip()
-    unknown = sorted(set(df["view"]) - set(views))
-    if unknown:
-        raise InputError(f"seeds for unknown view(s) {', '.join(unknown)}; the views are {', '.join(views)}",
-                         path=path)
-    dup = df.duplicated(["view", "marker"])
-    if dup.any():
-        i = int(np.flatnonzero(dup.to_numpy())[0])
-        raise InputError(f"marker {df['marker'].iloc[i]!r} seeded twice in view {df['view'].iloc[i]!r}",
-                         path=path, line=i + 2)
-    _check_seeds_inside(df, frame_shapes, path, lines=np.arange(len(df)) + 2)
-    return df[["view", "marker", "x_px", "y_px"]].reset_index(drop=True)
-
-
-def _check_seeds_inside(df: pd.DataFrame, frame_shapes: dict | None, path, lines) -> None:
-    """A seed must lie on its view's image (pixel centres 0..w-1, 0..h-1, half a pixel of edge)."""
-    for k, (v, m, x, y) in enumerate(df[["view", "marker", "x_px", "y_px"]].itertuples(index=False)):
-        shape = (frame_shapes or {}).get(v)
-        if shape is None:
-            continue
-        h, w = shape[:2]
-        if not (-0.5 <= x <= w - 0.5 and -0.5 <= y <= h - 0.5):
-            raise InputError(f"seed {m!r} of view {v!r} at ({x:g}, {y:g}) px is outside the {w}x{h} px image",
-                             path=path, line=None if lines is None else int(lines[k]))
-
-
 def _first_frames(views: dict, channel) -> dict:
     """Each view's first frame, decoded once for the seeds' check, the polarity and the
     diameter (None when it has no frame: reported later)."""
@@ -529,58 +455,6 @@ def _progress(total: int | None, desc: str, enabled: bool):
     return tqdm(total=total, desc=desc, unit="frame", file=sys.stderr, disable=not enabled, leave=False)
 
 
-def prefetched(frames, depth: int = 2):
-    """The frames of an iterator, decoded ``depth`` ahead on a background thread.
-
-    Decoding (``cv2.imdecode``, file reads) releases the GIL, so the next frames decode while
-    this one is tracked: on two or more cores the command takes about the longer of decoding
-    and tracking instead of their sum.  At most ``depth`` frames wait in the queue (memory
-    stays flat); an error in the source is raised here, in order, when its frame is due; a
-    consumer that stops early stops the thread."""
-    import queue
-    import threading
-
-    q: queue.Queue = queue.Queue(maxsize=depth)
-    stop = threading.Event()
-
-    def put(item) -> bool:
-        while not stop.is_set():
-            try:
-                q.put(item, timeout=0.05)
-                return True
-            except queue.Full:
-                continue
-        return False
-
-    def work():
-        try:
-            for fr in frames:
-                if not put(("frame", fr)):
-                    return
-            put(("end", None))
-        except BaseException as e:  # noqa: BLE001 - handed to the consumer, raised there
-            put(("error", e))
-
-    t = threading.Thread(target=work, name="bsipipe-decode", daemon=True)
-    t.start()
-    try:
-        while True:
-            kind, item = q.get()
-            if kind == "frame":
-                yield item
-            elif kind == "error":
-                raise item
-            else:
-                return
-    finally:
-        stop.set()
-        t.join(timeout=5.0)
-
-
-#: The polarity and diameter probes measure with the plane background: their thresholds and
-#: the two-size test of :func:`_estimate_diameter` were set on it, and a run's choice of
-#: background (for its centres) does not move its diameter (the edge background had moved the
-#: grid probe's from 4.60 to 3.24 px: 4524 of 4628 positions within 1 px at 4.60, 4259 at 3.24).
 _PROBE = {"background": "plane"}
 
 
@@ -825,20 +699,6 @@ def _stereo_check(table: pd.DataFrame, points3d: pd.DataFrame, vpair, pair, trac
             "markers": per}
 
 
-def decode_workers() -> int:
-    """Threads that decode a folder of frames for ``track``: one per usable core, at most 4.
-    Decoding a 1024 x 1024 PNG takes longer than tracking it; with the tracker on one core,
-    the others decode.  On 2 cores, 2 x 2,000 frames of the bench twin, two readers beat
-    three (one more than the cores, as before) in 6 of 7 interleaved pairs of runs, by about
-    1 s of 25 s wall and 1.5 s of 38 s CPU: a third reader only contends with the tracker;
-    one reader is 4-5 s slower in wall time."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not Linux
-        cores = os.cpu_count() or 1
-    return max(1, min(4, cores))
-
-
 def _point_sds(points3d: pd.DataFrame, table: pd.DataFrame, vpair, pair) -> None:
     """Each two-view point's standard deviation per axis (mm), propagated from its two
     centres' (:func:`bsipipe.imaging.triangulate.point_covariance`): ``sd_x_mm, sd_y_mm,
@@ -904,11 +764,12 @@ def _missing_frame_rows(table: pd.DataFrame, missing: dict[str, list[int]], fps:
 
 def _track_views(cfg, views, seed_df, d: dict, det, tk, progress: bool, rois: dict):
     """Track every view (:func:`bsipipe.imaging.track.track_view`), frames decoded ahead on
-    threads (a pool for a folder of frames, :func:`decode_workers`; :func:`prefetched` for
-    every source, so videos and stacks overlap too); returns the per-view tables, the events, the per-view info, each view's first
-    frame (for the overlay figure) and the sha256 of every frame file (from the bytes decoded)."""
+    threads (a pool for a folder of frames, :func:`~bsipipe.io.images.decode_workers`;
+    :func:`~bsipipe.io.images.prefetched` for every source, so videos and stacks overlap too);
+    returns the per-view tables, the events, the per-view info, each view's first frame (for
+    the overlay figure) and the sha256 of every frame file (from the bytes decoded)."""
     from ..imaging.track import track_view
-    from ..io.images import count_frames, iter_frames
+    from ..io.images import count_frames, decode_workers, iter_frames, prefetched
 
     tables, events, info = [], [], {}
     first_images: dict[str, np.ndarray] = {}
@@ -1168,6 +1029,7 @@ def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, 
     from ..imaging.detect import FieldOfView
     from ..imaging.track_effects import (CAPTURE_COLUMNS, WindowSource, close_stereo_loop,
                                          match_tracks_across_views, orientation_check, stereo_data)
+    from ..io.images import decode_workers
     from ..quality import warning
     vpair = (rig[pair[0]], rig[pair[1]])
     cross_view = None
@@ -1372,6 +1234,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     is triangulated and the loop closed on it, the tracks are smoothed, and the results are
     written together (:class:`~bsipipe.provenance.ResultSet`), ``track.json`` last."""
     from ..imaging.track import TrackSettings
+    from ..io.seeds import read_seeds
     from ..provenance import ResultSet, provenance
     from ..quality import warning
 

@@ -1,0 +1,96 @@
+"""Seeds: each marker's position in the first frame of each view, as a user clicks them.
+
+Two forms are read (:func:`read_seeds`):
+
+- ``seeds.csv``: one row per view and marker, columns ``view,marker,x_px,y_px`` (pixels,
+  x to the right, y down, the centre of the top-left pixel at (0, 0));
+- an XMALab 2-D point CSV (:mod:`bsipipe.io.xmalab`), as a user clicks markers in XMALab:
+  its first row (frame 0), ``camN`` the N-th view given.  Markers the file places only in
+  later frames are not seeds; they are listed in ``attrs["later"]``, for a warning.
+
+Errors are :class:`~bsipipe.errors.InputError` naming the file and, where there is one, the
+line.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+import pandas as pd
+
+from ..errors import InputError
+
+
+def read_seeds(path, views: Sequence[str], frame_shapes: dict | None = None) -> pd.DataFrame:
+    """``seeds.csv`` (``view,marker,x_px,y_px``) or an XMALab 2-D CSV (first row; ``camN``
+    is the N-th view).  Errors name the file and line.  ``frame_shapes`` (view -> (h, w)):
+    a seed outside its view's image is an error."""
+    from .xmalab import is_xmalab_2d, read_xmalab_2d
+    if is_xmalab_2d(path):
+        allx = read_xmalab_2d(path)
+        cams = {f"cam{i + 1}": v for i, v in enumerate(views)}
+        allx = allx[allx["view"].isin(list(cams)) & np.isfinite(allx["x_px"]) & np.isfinite(allx["y_px"])].copy()
+        allx["view"] = allx["view"].map(cams)
+        x = allx[allx["frame"] == 0]
+        x = x[["view", "marker", "x_px", "y_px"]].reset_index(drop=True)
+        # markers the file places only in later frames (clicked where they were visible): the
+        # seeds are frame 0's, so these are not followed in that view -- said, not dropped
+        # silently (``attrs["later"]``: view -> {marker: first frame}, for track.json's warning)
+        held = set(zip(x["view"], x["marker"]))
+        later: dict = {}
+        for (v, m), g in allx.groupby(["view", "marker"], sort=False):
+            if (v, m) not in held:
+                later.setdefault(v, {})[m] = int(g["frame"].min())
+        _check_seeds_inside(x, frame_shapes, path, lines=None)
+        if x.empty:
+            raise InputError("no marker has a position in frame 0 (the first row): the seeds are the markers' "
+                             "positions in the first frame", path=path)
+        x.attrs["later"] = later
+        return x
+    try:
+        df = pd.read_csv(path, dtype={"view": str, "marker": str})
+    except FileNotFoundError:
+        raise InputError("file not found", path=path) from None
+    except (OSError, ValueError, pd.errors.ParserError, UnicodeDecodeError) as e:
+        raise InputError(f"cannot read seeds: {e}", path=path) from None
+    df.columns = [str(c).strip() for c in df.columns]
+    miss = [c for c in ("view", "marker", "x_px", "y_px") if c not in df.columns]
+    if miss:
+        raise InputError(f"missing column(s) {', '.join(miss)}; expected view,marker,x_px,y_px", path=path, line=1)
+    if df.empty:
+        raise InputError("no seeds", path=path)
+    for c in ("x_px", "y_px"):
+        v = pd.to_numeric(df[c], errors="coerce")
+        bad = np.flatnonzero(~np.isfinite(v.to_numpy(float)))
+        if len(bad):
+            raise InputError(f"{c} is not a number: {df[c].iloc[bad[0]]!r}", path=path, line=int(bad[0]) + 2)
+        df[c] = v.astype(float)
+    for c in ("view", "marker"):
+        if df[c].isna().any():
+            i = int(np.flatnonzero(df[c].isna().to_numpy())[0])
+            raise InputError(f"empty {c}", path=path, line=i + 2)
+        df[c] = df[c].astype(str).str.strip()
+    unknown = sorted(set(df["view"]) - set(views))
+    if unknown:
+        raise InputError(f"seeds for unknown view(s) {', '.join(unknown)}; the views are {', '.join(views)}",
+                         path=path)
+    dup = df.duplicated(["view", "marker"])
+    if dup.any():
+        i = int(np.flatnonzero(dup.to_numpy())[0])
+        raise InputError(f"marker {df['marker'].iloc[i]!r} seeded twice in view {df['view'].iloc[i]!r}",
+                         path=path, line=i + 2)
+    _check_seeds_inside(df, frame_shapes, path, lines=np.arange(len(df)) + 2)
+    return df[["view", "marker", "x_px", "y_px"]].reset_index(drop=True)
+
+
+def _check_seeds_inside(df: pd.DataFrame, frame_shapes: dict | None, path, lines) -> None:
+    """A seed must lie on its view's image (pixel centres 0..w-1, 0..h-1, half a pixel of edge)."""
+    for k, (v, m, x, y) in enumerate(df[["view", "marker", "x_px", "y_px"]].itertuples(index=False)):
+        shape = (frame_shapes or {}).get(v)
+        if shape is None:
+            continue
+        h, w = shape[:2]
+        if not (-0.5 <= x <= w - 0.5 and -0.5 <= y <= h - 0.5):
+            raise InputError(f"seed {m!r} of view {v!r} at ({x:g}, {y:g}) px is outside the {w}x{h} px image",
+                             path=path, line=None if lines is None else int(lines[k]))
