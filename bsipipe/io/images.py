@@ -1041,9 +1041,3 @@ def prefetched(frames, depth: int = 2):
     finally:
         stop.set()
         t.join(timeout=5.0)
-
-
-#: The polarity and diameter probes measure with the plane background: their thresholds and
-#: the two-size test of :func:`_estimate_diameter` were set on it, and a run's choice of
-#: background (for its centres) does not move its diameter (the edge background had moved the
-#: grid probe's from 4.60 to 3.24 px: 4524 of 4628 positions within 1 px at 4.60, 4259 at 3.24).
