@@ -16,6 +16,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import functools  # noqa: E402
 import logging  # noqa: E402
+import math  # noqa: E402
 import sys  # noqa: E402
 
 import click
@@ -142,8 +143,9 @@ def calibrate(config, out, **opts) -> None:
 
     res = command.run(config, out=out, **opts)
     for name, v in res["views"].items():
-        click.echo(f"{name}: {v['dist_model']}, RMS {v['rms_px']:.4f} px, held-out {v['heldout_rms_px']:.4f} px "
-                   f"(declared model {v['heldout_rms_px_declared_model']:.4f} px), {v['n_views']} views"
+        held = (f"held-out {v['heldout_rms_px']:.4f} px (declared model {v['heldout_rms_px_declared_model']:.4f} px)"
+                if math.isfinite(v["heldout_rms_px"]) else "no view held out (too few)")
+        click.echo(f"{name}: {v['dist_model']}, RMS {v['rms_px']:.4f} px, {held}, {v['n_views']} views"
                    + (f", {len(v['rejected_views'])} left out" if v["rejected_views"] else ""))
         for step in (v.get("loop") or {}).get("steps", []):
             ev = step["evidence"]

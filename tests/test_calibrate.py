@@ -182,6 +182,32 @@ def test_calibrate_command_single_camera_with_loop(tmp_path):
     assert v["heldout_rms_px"] > v["rms_px"] > 0
 
 
+@pytest.mark.parametrize("names", [("01", "03", "04"), ("01", "03", "04", "05")])
+def test_calibrate_command_few_views(tmp_path, names):
+    """3 views (the fewest a camera needs: none can be held out) and 4 (cx alone weakly
+    pinned) calibrate: they had ended in internal errors (a held-out refit of 2 views; a
+    principal-point shift from one coordinate)."""
+    src = tmp_path / "img"
+    src.mkdir()
+    for n in names:
+        shutil.copy(STEREO / f"left{n}.jpg", src)
+    out = tmp_path / "out"
+    r = CliRunner().invoke(cli, ["calibrate", "--images", str(src), "--pattern", "chessboard", "--grid", "9x6",
+                                 "--spacing-mm", "25", "--view", "left", "-o", str(out)])
+    print(r.output)
+    assert r.exit_code == 0, r.output
+    d = json.loads((out / "calibration.json").read_text())
+    v = d["views"]["left"]
+    assert v["n_views"] == len(names) and 0 < v["rms_px"] < 0.5
+    codes = [w["code"] for w in d["warnings"]]
+    if len(names) == 3:
+        assert v["heldout_rms_px"] is None and v["std_jackknife"] == {} and "few-views" in codes
+        assert "no view held out" in r.output
+        assert all(s["evidence"].get("criterion") != "heldout" for s in d["loop"]["steps"])
+    else:
+        assert v["heldout_rms_px"] > v["rms_px"] and "few-views" not in codes
+
+
 def test_unreadable_and_mismatched_images_exit_2(tmp_path):
     d = tmp_path / "views"
     d.mkdir()

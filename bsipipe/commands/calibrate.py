@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import math
 import os
 from pathlib import Path
 from typing import Literal, Sequence
@@ -335,7 +336,7 @@ def _principal_point(name: str, free, hf, image_size, centre, cfg: CalibrateConf
         what = ", ".join(f"{k} {w['value_px']:.1f} px moves by +/-{w['std_jackknife_px']:.1f} px when one view is left "
                          f"out (the fit's own std says +/-{w['std_px']:.2f})" for k, w in weak.items())
         pp = {"cx", "cy"} & set(weak)
-        shift = float(np.hypot(*(w["std_jackknife_px"] for k, w in weak.items() if k in pp))) if pp else 0.0
+        shift = math.hypot(*(w["std_jackknife_px"] for k, w in weak.items() if k in pp)) if pp else 0.0
         then = (f"the parameters are uncertain (std_jackknife), not the 3-D: a shift of the principal point is a turn "
                 f"of the camera (here about {np.degrees(np.arctan(shift / f)):.2f} deg per jackknife sd), both cameras "
                 "turn together and the triangulated shape is kept; the camera frame turns, which the registration "
@@ -399,8 +400,8 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
     """The whole command; returns the calibration.json content (already written to ``out``)."""
     import cv2
 
-    from ..imaging.calibrate import (LARGE_RMS_PX, ModelSpec, calibrate_with_rejection, heldout_error, jackknife_std,
-                                     stereo_calibrate)
+    from ..imaging.calibrate import (LARGE_RMS_PX, MIN_HELDOUT_VIEWS, ModelSpec, calibrate_with_rejection,
+                                     heldout_error, jackknife_std, stereo_calibrate)
     from ..imaging.calibration_effects import close_loop
     from ..imaging.gridfind import parse_grid, target_points
     from ..io.mayacam import format_mayacam
@@ -472,6 +473,13 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
             h0 = hf
         final.heldout_rms_px, final.heldout_per_view_rms_px = hf
         final.std_jackknife = jackknife_std(folds)
+        if len(final.views) < MIN_HELDOUT_VIEWS:
+            warnings.append(warning(
+                "few-views",
+                f"calibrate: {name}: {len(final.views)} views calibrated, the fewest a camera needs: none can be held "
+                "out, so there is no held-out error, no leave-one-view-out spread of the parameters (std_jackknife), "
+                "no test for an outlier view, and the loop weighed effects by BIC alone; give 10 or more views of the "
+                "target at different tilts and positions", logger=log, view=name, n_views=len(final.views)))
         centre = None if size[2] in (None, "none") else tuple(size[2])
         final, hf, pp_info, _ = _principal_point(name, final, hf, image_size, centre, cfg, sources[0][1],
                                                     warnings)

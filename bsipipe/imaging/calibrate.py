@@ -44,6 +44,7 @@ merely noisier is kept and flagged.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field, replace
 from typing import Sequence
 
@@ -684,13 +685,21 @@ def calibrate_with_rejection(views: Sequence[ViewData], image_size: tuple[int, i
     return cal
 
 
+#: Views a leave-one-view-out error needs: each refit keeps the 3 a calibration needs.
+MIN_HELDOUT_VIEWS = 4
+
+
 def heldout_error(cal: Calibration, spec: ModelSpec | None = None,
                   folds: list | None = None) -> tuple[float, dict[str, float]]:
     """Leave-one-view-out reprojection RMS (px) over all held-out points, and per view.
     ``folds``: a list that receives each refit's :attr:`Calibration.params` (for
-    :func:`jackknife_std`)."""
+    :func:`jackknife_std`).  A refit needs the 3 views a calibration needs: with fewer than
+    :data:`MIN_HELDOUT_VIEWS` views there is nothing to hold out, and the error is NaN (no
+    folds, no per-view values)."""
     spec = spec or cal.camera.spec
     views = cal.views
+    if len(views) < MIN_HELDOUT_VIEWS:
+        return math.nan, {}
     sse = 0.0
     n = 0
     per: dict[str, float] = {}

@@ -19,7 +19,8 @@ from typing import Sequence
 import numpy as np
 
 from ..loop import Effect, LoopReport, run_loop
-from .calibrate import Calibration, ModelSpec, ViewData, calibrate_camera, heldout_error, residual_components
+from .calibrate import (MIN_HELDOUT_VIEWS, Calibration, ModelSpec, ViewData, calibrate_camera, heldout_error,
+                        residual_components)
 
 
 def _higher(spec: ModelSpec):
@@ -119,7 +120,9 @@ def close_loop(views: Sequence[ViewData], image_size: tuple[int, int], base: Cal
     """Run the loop from the declared model ``base``; return the report, the final calibration
     (its held-out error filled in) and the fitter (for the baseline's held-out error)."""
     lp = CalibrationLoop(views, image_size, base)
-    report = run_loop(lp.fit, base.camera.spec, candidates, heldout=lp.heldout,
+    # with too few views to hold one out, effects are weighed by BIC alone
+    report = run_loop(lp.fit, base.camera.spec, candidates,
+                      heldout=lp.heldout if len(views) >= MIN_HELDOUT_VIEWS else None,
                       covariates=lambda res: {"radius_px": res.radius_px}, describe=lambda s: s.describe(),
                       unit="px")
     final = lp.calibration(report.final.spec)

@@ -32,7 +32,7 @@ def residual_figure(title: str, image_points: np.ndarray, residuals: np.ndarray,
     sub = [f"arrows x{scale:.0f}"]
     if rms_px is not None:
         sub.append(f"RMS {rms_px:.3f} px")
-    if heldout_rms_px is not None:
+    if heldout_rms_px is not None and np.isfinite(heldout_rms_px):
         sub.append(f"held-out {heldout_rms_px:.3f} px")
     ax.set_title(f"{title}\n" + ", ".join(sub), fontsize=10)
     fig.colorbar(q, ax=ax, label="|residual| (px)", shrink=0.8)
