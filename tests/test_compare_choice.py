@@ -111,6 +111,26 @@ def test_fe_result_matched_by_the_marker_tables_fe_time(tmp_path):
     assert res["sigma_mm"] < EXACT_MM
 
 
+@pytest.mark.parametrize("given, index", [(1, 1), (3, 3), (-2, 2), (0, 0)])
+def test_fe_result_given(tmp_path, given, index):
+    """--fe-result picks the result whatever the clocks say (only that one is read): with the
+    marker table's FE times, a given result other than the frame's is compared and its time
+    gap warned about; it had ended in an internal error (IndexError) for any index but 0."""
+    mesh, fe, markers = _setup(tmp_path, fe_time_col=True)
+    res = _compare(tmp_path, mesh, fe, markers, "--frame", 2, "--fe-result", given)
+    assert res["fe_result"]["index"] == index and res["fe"]["time"] == FE_TIMES[index]
+    assert "given" in res["fe_result"]["why"]
+    if index == 1:                      # frame 2 is at FE time 2 s: the right result
+        assert res["sigma_mm"] < EXACT_MM and res["warnings"] == []
+    else:
+        assert res["sigma_mm"] > WRONG_MM
+        assert any(f"FE time {FE_TIMES[index]:g}) is {abs(FE_TIMES[index] - 2.0):.3g} from" in w
+                   for w in res["warnings"])
+    r = _invoke("compare", "--fe-displacements", fe, "--mesh", mesh, "--markers", markers, "--fe-result", 4,
+                "-o", tmp_path / "bad")
+    assert r.exit_code == 2 and "holds 4" in r.output and not (tmp_path / "bad").exists()
+
+
 def test_unmatched_fe_time_and_unknown_clock_are_warned(tmp_path):
     """A frame between FE results (FE 2.5 s, results at 2 and 3 s, frames 0.5 s apart) is compared with the
     nearest and warned about; without any clock a non-peak frame cannot be matched: the

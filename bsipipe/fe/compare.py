@@ -212,7 +212,21 @@ def choose_fe_result(n_results: int, *, given: int | None = None, fe_times=None,
     times = None if fe_times is None else np.asarray(fe_times, dtype=float)
     timed = times is not None and target_fe_time is not None and bool(np.all(np.isfinite(times)))
     if given is not None:
+        if not -n_results <= int(given) < n_results:
+            raise ValueError(f"FE result {given} asked for; the file holds {n_results} (0..{n_results - 1}, or "
+                             f"-1..-{n_results} from the end)")
         k, why = int(given) % n_results, "given (--fe-result)"
+        if times is not None and len(times) != n_results:
+            # only the given result was read: its time is the one there is
+            times = np.full(n_results, np.nan) if len(times) != 1 else np.full(n_results, float(times[0]))
+        timed = times is not None and target_fe_time is not None and bool(np.isfinite(times[k]))
+        if timed:
+            gap = abs(float(times[k]) - target_fe_time)
+            warnings = ([] if gap <= time_tol else
+                        [f"the FE result given (FE time {times[k]:.6g}) is {gap:.3g} from the measured frame's FE "
+                         f"time {target_fe_time:.6g} (tolerance {time_tol:.3g}, half a frame interval)"])
+            return FEResultChoice(k, why, target_fe_time, warnings)
+        return FEResultChoice(k, why, target_fe_time, [])
     elif n_results == 1:
         k, why = 0, "the file holds one result"
     elif timed:
