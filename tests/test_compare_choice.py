@@ -131,6 +131,29 @@ def test_fe_result_given(tmp_path, given, index):
     assert r.exit_code == 2 and "holds 4" in r.output and not (tmp_path / "bad").exists()
 
 
+@pytest.mark.parametrize("table_cs, ok", [("LPS", True), ("unstated", True), ("RAS", False), ("LPS|RAS", False)])
+def test_marker_table_and_mesh_must_share_the_ct_frame(tmp_path, table_cs, ok):
+    """A deck written in an LPS CT frame (export-fe's header) against markers_ct.csv of an RAS
+    registration (x and y of opposite signs) is exit 2 naming both files, with nothing
+    written: it had been compared without a word (the sample study's files: sigma 0.994 mm
+    for 1.542).  A table that states nothing is compared as before; one that states both is
+    refused too."""
+    header = f"** {abaqus_header_line('ct_coordinate_system', 'LPS')}\n"
+    mesh, fe, markers = _setup(tmp_path, header=header)
+    t = pd.read_csv(markers)
+    cs = table_cs.split("|")
+    t["coordinate_system"] = [cs[i % len(cs)] for i in range(len(t))]
+    t.to_csv(markers, index=False, float_format="%.17g")
+    out = tmp_path / "cmp"
+    r = _invoke("compare", "--fe-displacements", fe, "--mesh", mesh, "--markers", markers, "-o", out)
+    if ok:
+        assert r.exit_code == 0, r.output
+        assert json.loads((out / "compare.json").read_text())["sigma_mm"] < EXACT_MM
+    else:
+        assert r.exit_code == 2 and str(markers) in r.output and not out.exists()
+        assert ("RAS, those of" in r.output and str(mesh) in r.output) if table_cs == "RAS" else "LPS and RAS" in r.output
+
+
 def test_unmatched_fe_time_and_unknown_clock_are_warned(tmp_path):
     """A frame between FE results (FE 2.5 s, results at 2 and 3 s, frames 0.5 s apart) is compared with the
     nearest and warned about; without any clock a non-peak frame cannot be matched: the

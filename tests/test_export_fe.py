@@ -372,6 +372,24 @@ def test_bad_config_exits_2_naming_the_key(case):
     assert not (folder / "bad_out" / "manifest.json").exists()
 
 
+def test_markers_of_another_ct_frame_exit_2(case):
+    """markers_ct.csv of an RAS registration against an LPS registration.json (x and y of
+    opposite signs: the marker table and the deck in two CT frames) is exit 2 naming both; it
+    had written markers_fe.csv in RAS under a deck and manifest that say LPS."""
+    folder, _, _, _ = case
+    t = pd.read_csv(folder / "reg" / "markers_ct.csv")
+    assert set(t["coordinate_system"]) == {"LPS"}
+    t["x_mm"], t["y_mm"], t["coordinate_system"] = -t["x_mm"], -t["y_mm"], "RAS"
+    t.to_csv(folder / "markers_ct_ras.csv", index=False)
+    cfg = yaml.safe_load((folder / "export.yaml").read_text())
+    cfg["inputs"]["markers_ct"] = "markers_ct_ras.csv"
+    (folder / "ras.yaml").write_text(yaml.safe_dump(cfg))
+    res = CliRunner().invoke(cli, ["export-fe", str(folder / "ras.yaml"), "-o", str(folder / "ras_out")])
+    assert res.exit_code == 2, res.output
+    assert "markers_ct_ras.csv: its CT coordinates are RAS" in res.output and "registration.json are LPS" in res.output
+    assert not (folder / "ras_out").exists()
+
+
 def test_failed_check_exits_1(case):
     folder, _, _, _ = case
     cfg = yaml.safe_load((folder / "export.yaml").read_text())

@@ -75,6 +75,7 @@ def run(fe_displacements: str | os.PathLike, mesh: str | os.PathLike, markers: s
     from ..fe.compare import choose_fe_result, compare_displacements, markers_at_frame, peak_frame_info
     from ..io.abaqus import abaqus_header_values
     from ..io.fe_results import displacements_on_mesh, read_displacements, read_mesh
+    from .register import check_same_coordinate_system, coordinate_system_of
     from ..provenance import ResultSet, provenance
     from ..report.compare_figure import compare_figure
 
@@ -85,6 +86,8 @@ def run(fe_displacements: str | os.PathLike, mesh: str | os.PathLike, markers: s
     table = read_markers_ct(markers)
     fe_mesh = read_mesh(mesh, length_unit=cfg.length_unit)
     header = abaqus_header_values(mesh) if str(mesh).lower().endswith(".inp") else {}
+    check_same_coordinate_system(coordinate_system_of(table, markers), markers, header.get("ct_coordinate_system"),
+                                 mesh)
     if cfg.fe_result is None:          # every result (the file parsed once), to choose from below
         results = read_displacements(fe_displacements, choose="all", length_unit=cfg.length_unit)
         last = results[-1]

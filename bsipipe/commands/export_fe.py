@@ -129,7 +129,7 @@ def read_mesh(path, names):
 
 def run(config: str | os.PathLike, *, out: str | os.PathLike) -> dict:
     """Build and write the hand-off; returns ``manifest.json``'s content."""
-    from ..commands.register import read_markers3d, read_table
+    from ..commands.register import check_same_coordinate_system, coordinate_system_of, read_markers3d, read_table
     from ..fe.export import HandoffError, build_handoff, render_files
     from ..io._fe_material import unit_system
     from ..provenance import ResultSet, provenance
@@ -145,6 +145,8 @@ def run(config: str | os.PathLike, *, out: str | os.PathLike) -> dict:
                             optional_numeric=("time_s",))
     if "time_s" not in markers_ct.columns:
         markers_ct["time_s"] = np.nan
+    check_same_coordinate_system(coordinate_system_of(markers_ct, inp.markers_ct), inp.markers_ct,
+                                 reg.get("ct_coordinate_system"), inp.registration)
     log_record, machine_log = read_log(inp.log)
     indentor_xray = None
     if inp.markers3d is not None:

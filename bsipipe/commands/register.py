@@ -217,6 +217,29 @@ def markers_to_ct(tracks: pd.DataFrame, T, frame: int, roles: dict[str, str],
     return out.sort_values(["frame", "marker"], kind="stable").reset_index(drop=True)
 
 
+def coordinate_system_of(table: pd.DataFrame, path) -> str | None:
+    """The CT coordinate system (``LPS`` or ``RAS``) a ``markers_ct.csv`` states in its
+    ``coordinate_system`` column (:func:`markers_to_ct`), None where it does not say (no
+    column, ``unstated``); rows that state both are an InputError naming the file."""
+    if "coordinate_system" not in table.columns:
+        return None
+    said = {str(v).strip().upper() for v in table["coordinate_system"].dropna()} - {"", "UNSTATED"}
+    if len(said) > 1:
+        raise InputError(f"the coordinate_system column states {' and '.join(sorted(said))}: one table holds "
+                         "markers of one CT frame", path=path)
+    return next(iter(said)) if said else None
+
+
+def check_same_coordinate_system(a: str | None, path_a, b: str | None, path_b) -> None:
+    """Two files that both state the CT frame's coordinate system must state the same one: an
+    LPS and an RAS description of one CT differ by the sign of x and y, and set against each
+    other they would give wrong numbers without an error."""
+    if a and b and a.upper() != b.upper():
+        raise InputError(f"its CT coordinates are {a.upper()}, those of {path_b} are {b.upper()} (x and y of "
+                         "opposite signs): register, export-fe and compare must work in one CT frame; rerun register "
+                         "with the CT markups file of the frame the FE model is in", path=path_a)
+
+
 def _target_positions(tracks: pd.DataFrame, frame: int) -> dict[str, np.ndarray]:
     """Each marker's X-ray position in ``frame``, else its mean over the frames where it is found."""
     ok = tracks[_found(tracks)]
