@@ -154,6 +154,27 @@ def test_coincident_ct_references_are_invalid_input(tmp_path):
     assert not (tmp_path / "out" / "registration.json").exists()
 
 
+@pytest.mark.parametrize("factor, units", [(1e-3, "metres"), (1e-2, "centimetres"), (1e3, "micrometres"),
+                                           (1.03, None), (0.97, None)])
+def test_ct_in_other_length_units_is_invalid_input(tmp_path, factor, units):
+    """A CT markups file in metres (or cm, or um) is exit 2 naming it and the units it looks
+    like, with nothing written: the loop's scale effect had taken 0.001 as a magnification
+    (FRE 0.0000 mm) and written every _mm value of markers_ct.csv in metres.  A scale of a few
+    per cent (a C-arm's magnification error) is the loop's to find, as before."""
+    def edit(ct):
+        c = np.mean([ct[n] for n in ct], axis=0)
+        for n in ct:
+            ct[n] = c + factor * (ct[n] - c) if units is None else factor * ct[n]
+    _trial(tmp_path, ct_edit=edit)
+    r, res = _register(tmp_path, REFS4, "--scale")
+    if units is None:
+        assert r.exit_code == 0, r.output
+        assert res["scale"] == pytest.approx(factor, rel=0.005)
+    else:
+        assert r.exit_code == 2 and "ct.fcsv" in r.output and f"look like {units}" in r.output
+        assert not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize("where", ["ct", "xray"])
 def test_collinear_references_are_invalid_input(tmp_path, where):
     def edit(p):   # R3, R4 exactly on the line R1-R2 (as tracked, after the noise)

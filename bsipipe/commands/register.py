@@ -296,6 +296,37 @@ def _check_handedness(xray: dict, ct: dict, *, scale: bool, ct_path, system, ref
                          path=ct_path)
 
 
+#: The largest ratio of the references' spreads in the two files (either way) taken for a
+#: magnification error (a C-arm's source distance or pixel size off by tens of per cent at
+#: most); beyond it the files' lengths are in different units.
+MAX_SPREAD_RATIO = 2.0
+
+
+def _check_length_units(x_mm, y_mm, *, ct_path, xray_path) -> None:
+    """Refuse a CT file whose references span a very different size from the X-ray's (RMS
+    distance from their centroid, ratio beyond :data:`MAX_SPREAD_RATIO`): its coordinates are
+    in other units than millimetres (a CT exported in metres is 1000 times smaller, and the
+    loop's ``scale`` would absorb it and write every ``_mm`` value in metres)."""
+    def spread(p):
+        p = np.asarray(p, float)
+        return float(np.sqrt(np.mean(np.sum((p - p.mean(axis=0)) ** 2, axis=1))))
+
+    sx, sy = spread(x_mm), spread(y_mm)
+    if not (sx > 0 and sy > 0):
+        return
+    r = sy / sx
+    if 1.0 / MAX_SPREAD_RATIO <= r <= MAX_SPREAD_RATIO:
+        return
+    units = {1e-3: "metres", 1e-2: "centimetres", 1e3: "micrometres"}
+    near = min(units, key=lambda u: abs(np.log10(r / u)))
+    hint = (f": its coordinates look like {units[near]} (give them in mm, or convert)"
+            if abs(np.log10(r / near)) < np.log10(MAX_SPREAD_RATIO) else
+            ": its coordinates are in other units than the X-ray's millimetres, or not of these markers")
+    raise InputError(f"the reference markers span {sy:.4g} (RMS from their centroid) in the CT file and {sx:.4g} mm "
+                     f"in the X-ray markers ({xray_path}), {r:.3g} times as much, beyond any C-arm magnification "
+                     f"error{hint}", path=ct_path)
+
+
 def _check_configuration(points, *, path, frame: int | None = None, names: Sequence[str], what: str) -> dict:
     """Refuse references that coincide or lie on one line (InputError naming ``path``); returns
     :func:`~bsipipe.geometry.registration.point_configuration` of ``points`` (n, 3)."""
@@ -423,6 +454,7 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
             f"{LINE_RATIO_MIN:g}): the rotation about their line is poorly determined (about FLE / "
             f"{c['lateral_mm']:.3g} mm rad), and so is every point away from it", log,
             line_ratio=c["line_ratio"], lateral_mm=c["lateral_mm"], spread_mm=c["spread_mm"], file=worst[1]))
+    _check_length_units(pos[fi], y_refs, ct_path=ct, xray_path=xray)
     _check_handedness(_target_positions(tracks, F), ct_pos, scale=cfg.scale, ct_path=ct,
                       system=markups.coordinate_system, references=found)
 
