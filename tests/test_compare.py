@@ -24,6 +24,7 @@ import pytest
 from click.testing import CliRunner
 
 from bsipipe.cli import cli
+from bsipipe.errors import InputError
 from bsipipe.fe._calculix import ccx_executable, run_ccx
 from bsipipe.fe.compare import compare_displacements, model_at_points
 from bsipipe.io.abaqus import abaqus_elements, abaqus_material, abaqus_nodes
@@ -422,3 +423,50 @@ def test_calculix_homogeneous_brick_read_back_and_interpolated(tmp_path):
     assert np.abs(model - u_true).max() < FRD_TOL_MM
     assert res["sigma_mm"] < FRD_TOL_MM
     assert res["fe"]["element_types"] == {"C3D8": 36} and res["fe"]["format"] == "calculix-frd"
+
+
+def _frd_text(n_nodes: int, times=(0.5, 1.0)) -> str:
+    """A small CalculiX ASCII .frd (long format): the node block and one DISP block per time."""
+    out = [f"    2C{n_nodes:>30d}{'':37s}1"]
+    out += [f" -1{k:>10d}{float(k):12.5E}{0.0:12.5E}{0.0:12.5E}" for k in range(1, n_nodes + 1)]
+    out.append(" -3")
+    for t in times:
+        out += [f"  100CL  101{t:12.5E}{n_nodes:12d}                     0    1           1",
+                " -4  DISP        4    1", " -5  D1          1    2    1    0"]
+        out += [f" -1{k:>10d}{t * k:12.5E}{0.0:12.5E}{0.0:12.5E}" for k in range(1, n_nodes + 1)]
+        out.append(" -3")
+    return "\n".join(out + ["9999"]) + "\n"
+
+
+def _dat_text(n_nodes: int, times=(0.5, 1.0)) -> str:
+    out = []
+    for t in times:
+        out += ["", f" displacements (vx,vy,vz) for set NALL and time  {t:.7E}", ""]
+        out += [f"{k:>10d} {t * k: .6E} {0.0: .6E} {0.0: .6E}" for k in range(1, n_nodes + 1)]
+    return "\n".join(out) + "\n"
+
+
+def test_calculix_results_cut_off_are_invalid_input(tmp_path):
+    """A .frd that ends inside a block (no -3 record), or whose DISP block holds fewer nodes
+    than its header says, and a .dat whose last block is shorter than the set's earlier ones,
+    are InputErrors naming the file: a run stopped while writing, or a copy cut short, had been
+    read as complete (a partial last result: 'its element has a node without an FE
+    displacement' for markers the file simply did not reach, or the file's last result taken
+    as the peak's)."""
+    frd, dat = tmp_path / "job.frd", tmp_path / "job.dat"
+    frd.write_text(_frd_text(10))
+    dat.write_text(_dat_text(10))
+    for r in (read_frd(frd), read_ccx_dat(dat)):          # the whole files read
+        assert r.n_results == 2 and r.time == 1.0 and len(r.node_ids) == 10
+        assert np.allclose(r.u_mm[:, 0], np.arange(1, 11))
+    lines = _frd_text(10).splitlines()
+    frd.write_text("\n".join(lines[:-6]) + "\n")          # cut inside the last DISP block
+    with pytest.raises(InputError, match=r"ends inside the DISP block that starts at line 27"):
+        read_frd(frd)
+    frd.write_text("\n".join(lines[:-4] + lines[-3:]) + "\n")   # a node record gone
+    with pytest.raises(InputError, match=r"holds 9 nodes, its header says 10"):
+        read_frd(frd)
+    lines = _dat_text(10).splitlines()
+    dat.write_text("\n".join(lines[:-4]) + "\n")
+    with pytest.raises(InputError, match=r"set NALL, time 1\) holds 6 nodes, the set's earlier ones 10"):
+        read_ccx_dat(dat)

@@ -486,6 +486,15 @@ def read_ccx_dat(path, *, choose: int | None = None, length_unit: str = "mm") ->
     for b in blocks:
         if b.time not in times:
             times.append(b.time)
+    # a file cut off (a run stopped while writing, a copy cut short) ends with a partial block:
+    # fewer nodes than the same set's block at every earlier time
+    if blocks:
+        last = blocks[-1]
+        before = [len(b.ids) for b in blocks[:-1] if b.set_name == last.set_name]
+        if before and len(last.ids) < min(before):
+            raise InputError(f"the last displacement block (set {last.set_name}, time {last.time:g}) holds "
+                             f"{len(last.ids)} nodes, the set's earlier ones {min(before)}: the file was cut off "
+                             "(a run stopped while writing, or a copy cut short)", path=path)
 
     def build(t: float) -> NodalDisplacements:
         merged: dict[int, np.ndarray] = {}
@@ -513,6 +522,15 @@ def _frd_values(line: str, start: int, n: int) -> list[float]:
     return [float(line[start + 12 * k: start + 12 * (k + 1)]) for k in range(n)]
 
 
+def _frd_block_end(lines: list[str], i: int, head_no: int, what: str, path) -> None:
+    """A block of an ``.frd`` ends with a `` -3`` record: a file that ends first was cut off
+    (a run stopped while writing, a copy cut short) and its last result is partial."""
+    if i >= len(lines):
+        raise InputError(f"the file ends inside the {what} block that starts at line {head_no} (no -3 record): "
+                         "a run cut short or a file cut off; its last result would be partial", path=path,
+                         line=head_no)
+
+
 def read_frd(path, *, choose: int | None = None, length_unit: str = "mm") -> NodalDisplacements:
     """CalculiX ASCII ``.frd``: node coordinates (block ``2C``) and ``DISP`` result blocks (``100C``).
 
@@ -530,6 +548,7 @@ def read_frd(path, *, choose: int | None = None, length_unit: str = "mm") -> Nod
             if fmt not in (0, 1):
                 raise InputError("a binary .frd file; write it in ASCII (CalculiX's default)", path=path, line=i + 1)
             w = 10 if fmt == 1 else 5
+            head_no = i + 1
             i += 1
             while i < len(lines) and not lines[i].startswith(" -3"):
                 r = lines[i]
@@ -539,6 +558,7 @@ def read_frd(path, *, choose: int | None = None, length_unit: str = "mm") -> Nod
                     except ValueError:
                         raise InputError("bad node record", path=path, line=i + 1) from None
                 i += 1
+            _frd_block_end(lines, i, head_no, "node", path)
         elif s.startswith("100C"):
             head_no = i + 1
             try:
@@ -560,7 +580,15 @@ def read_frd(path, *, choose: int | None = None, length_unit: str = "mm") -> Nod
                     except ValueError:
                         raise InputError("bad DISP record", path=path, line=i + 1) from None
                 i += 1
+            _frd_block_end(lines, i, head_no, name or "result", path)
             if name == "DISP":
+                try:
+                    stated = int(ln[24:36])
+                except ValueError:
+                    stated = None
+                if stated is not None and stated != len(ids):
+                    raise InputError(f"the DISP block holds {len(ids)} nodes, its header says {stated}: the file was "
+                                     "cut off or edited", path=path, line=head_no)
                 results.append((f"DISP at time {t:g} (line {head_no})", t, np.array(ids, dtype=np.int64),
                                 np.array(vals, dtype=float)))
         i += 1
