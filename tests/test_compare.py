@@ -28,8 +28,8 @@ from bsipipe.errors import InputError
 from bsipipe.fe._calculix import ccx_executable, run_ccx
 from bsipipe.fe.compare import compare_displacements, model_at_points
 from bsipipe.io.abaqus import abaqus_elements, abaqus_material, abaqus_nodes
-from bsipipe.io.fe_results import (displacements_on_mesh, read_abaqus_mesh, read_ccx_dat, read_displacements,
-                                  read_frd, read_mesh)
+from bsipipe.io.fe_results import (displacements_on_mesh, read_abaqus_mesh, read_abaqus_report, read_ccx_dat,
+                                   read_displacements, read_frd, read_mesh)
 from test_shape_functions import add_midside, brick_hex, hex_to_tet, linear_field, points_inside, quadratic_field
 
 SIZE = (10.0, 8.0, 6.0)
@@ -470,3 +470,36 @@ def test_calculix_results_cut_off_are_invalid_input(tmp_path):
     dat.write_text("\n".join(lines[:-4]) + "\n")
     with pytest.raises(InputError, match=r"set NALL, time 1\) holds 6 nodes, the set's earlier ones 10"):
         read_ccx_dat(dat)
+
+
+def _rpt_two_parts(path, ids_a, ids_b, frames=((0.5, 0.5), (1.0, 1.0))):
+    """Abaqus/CAE's report of a model of two part instances: per frame a table for BRAIN-1,
+    then one for INDENTOR-1 (u of node k = (k, 0, 0) times the frame's scale)."""
+    out = []
+    for k, (t, s) in enumerate(frames, start=1):
+        out += ["Source 1", "---------", "   ODB: /tmp/job.odb", "   Step: Step-1",
+                f"   Frame: Increment {k:6d}: Step Time = {t:8.3f}", ""]
+        for part, ids in (("BRAIN-1", ids_a), ("INDENTOR-1", ids_b)):
+            out += [f"Field Output reported at nodes for part: {part}", "",
+                    "            Node            U.U1            U.U2            U.U3",
+                    "           Label          @Loc 1          @Loc 1          @Loc 1", "-" * 65]
+            out += [f"{i:16d} {s * i:17.10E} {0.0:17.10E} {0.0:17.10E}" for i in ids]
+            out += ["", f"  Minimum {0.0:17.10E}", ""]
+    path.write_text("\n".join(out) + "\n")
+
+
+def test_report_of_several_part_instances(tmp_path):
+    """A report of two part instances (one table per instance and frame) is one result per
+    frame, the tables merged where their labels are distinct; where they overlap (each
+    instance numbering its nodes from 1) it is an InputError naming the parts: the indentor's
+    labels had been read as brain nodes, and each frame counted twice (23 frames as 46 results)."""
+    p = tmp_path / "two.rpt"
+    _rpt_two_parts(p, np.arange(1, 21), np.arange(101, 106))
+    r = read_abaqus_report(p, choose="all")
+    assert len(r) == 2 and [x.time for x in r] == [0.5, 1.0]
+    assert list(r[1].node_ids) == list(range(1, 21)) + list(range(101, 106))
+    assert np.allclose(r[1].u_mm[:, 0], r[1].node_ids)
+    _rpt_two_parts(p, np.arange(1, 21), np.arange(1, 6))
+    with pytest.raises(InputError, match=r"one table per part instance \(BRAIN-1, INDENTOR-1\), whose node labels "
+                                         r"overlap"):
+        read_abaqus_report(p)

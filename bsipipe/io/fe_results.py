@@ -373,6 +373,35 @@ def read_displacement_csv(path, *, choose: int | None = None, length_unit: str =
 _RPT_FRAME = re.compile(r"Step Time\s*=\s*(\S+)")
 
 
+def _rpt_parts_merged(tables: list[tuple], path) -> list[tuple]:
+    """One result per frame from a report's tables ``(desc, time, ids, values, part, line)``:
+    Abaqus/CAE reports a model of several part instances as one table per instance and frame
+    ("Field Output reported at nodes for part: BRAIN-1", then INDENTOR-1, ...).  Tables of one
+    frame are merged where their node labels are distinct (one label space); where they
+    overlap (each instance numbering its own nodes from 1) the labels cannot be told apart and
+    the report is refused: report the brain's instance alone."""
+    out: list[tuple] = []
+    k = 0
+    while k < len(tables):
+        j = k + 1
+        while j < len(tables) and tables[j][0] == tables[k][0] and tables[j][4] != tables[k][4]:
+            j += 1
+        group = tables[k:j]
+        if len(group) > 1:
+            ids = np.concatenate([g[2] for g in group])
+            if len(np.unique(ids)) != len(ids):
+                names = ", ".join(str(g[4]) for g in group)
+                raise InputError(f"{group[0][0]} is reported as one table per part instance ({names}), whose node "
+                                 "labels overlap (each instance numbers its own nodes): report the brain's instance "
+                                 "alone (Report > Field Output, Setup: the instance's nodes), the one the mesh given "
+                                 "to compare describes", path=path, line=group[0][5])
+            out.append((group[0][0], group[0][1], ids, np.vstack([g[3] for g in group])))
+        else:
+            out.append(group[0][:4])
+        k = j
+    return out
+
+
 def read_abaqus_report(path, *, choose: int | None = None, length_unit: str = "mm") -> NodalDisplacements:
     """An ABAQUS field-output report (``.rpt``) with ``U.U1 U.U2 U.U3`` at nodes.
 
@@ -395,7 +424,7 @@ def read_abaqus_report(path, *, choose: int | None = None, length_unit: str = "m
     """
     lines = _read_lines(path)
     results = []
-    step = frame = None
+    step = frame = part = None
     i = 0
     while i < len(lines):
         s = lines[i].strip()
@@ -403,6 +432,9 @@ def read_abaqus_report(path, *, choose: int | None = None, length_unit: str = "m
             step = s.split(":", 1)[1].strip()
         elif s.startswith("Frame:"):
             frame = s.split(":", 1)[1].strip()
+            part = None
+        elif s.lower().startswith("field output reported at nodes for part:"):
+            part = s.split(":", 1)[1].strip()
         toks = s.split()
         if toks and toks[0] == "Node" and any(t.startswith("U.U") for t in toks):
             names = toks[2:] if len(toks) > 1 and toks[1] == "Label" else toks[1:]
@@ -451,9 +483,10 @@ def read_abaqus_report(path, *, choose: int | None = None, length_unit: str = "m
                 except ValueError:
                     t = None
             desc = f"step {step}, frame {frame}" if step or frame else f"table at line {head_no}"
-            results.append((desc, t, np.array(ids, dtype=np.int64), np.array(vals, dtype=float)))
+            results.append((desc, t, np.array(ids, dtype=np.int64), np.array(vals, dtype=float), part, head_no))
             continue
         i += 1
+    results = _rpt_parts_merged(results, path)
 
     def build(r) -> NodalDisplacements:
         desc, t, ids, u = r
