@@ -503,3 +503,31 @@ def test_report_of_several_part_instances(tmp_path):
     with pytest.raises(InputError, match=r"one table per part instance \(BRAIN-1, INDENTOR-1\), whose node labels "
                                          r"overlap"):
         read_abaqus_report(p)
+
+
+def test_abaqus_cae_parts_are_placed_by_their_instances(tmp_path):
+    """An Abaqus/CAE input file holds each part's nodes in the part's own frame and places the
+    part by its *INSTANCE (a translation, then a rotation about an axis through two points):
+    the mesh read is the assembly's, as the flat deck of the same model.  The instance had
+    been ignored (a mesh 10 mm off, compared and exported without an error).  A part
+    instanced twice is an InputError."""
+    from scipy.spatial.transform import Rotation
+    coords, conn = brick_hex(2, 2, 2, size=(4.0, 4.0, 4.0))
+    ids = np.arange(1, len(coords) + 1)
+    a, b, angle = np.array([1.0, 2.0, 3.0]), np.array([1.0, 3.0, 5.0]), 30.0
+    shift = np.array([10.0, -5.0, 2.5])
+    R = Rotation.from_rotvec((b - a) / np.linalg.norm(b - a) * np.radians(angle)).as_matrix()
+    placed = a + (coords + shift - a) @ R.T
+    body = abaqus_nodes(ids, coords).rstrip() + "\n" + abaqus_elements("C3D8", np.arange(1, len(conn) + 1),
+                                                                          ids[conn]).rstrip()
+    instance = (f"*Instance, name=BRAIN-1, part=BRAIN\n{', '.join(repr(float(x)) for x in shift)}\n"
+                f"{', '.join(repr(float(x)) for x in (*a, *b, angle))}\n*End Instance\n")
+    cae = tmp_path / "cae.inp"
+    cae.write_text(f"*Heading\n*Part, name=BRAIN\n{body}\n*End Part\n*Assembly, name=Assembly\n{instance}"
+                   "*End Assembly\n")
+    m = read_abaqus_mesh(cae)
+    assert np.abs(m.coords_mm[np.argsort(m.node_ids)] - placed).max() < 1e-9
+    twice = instance + instance.replace("BRAIN-1", "BRAIN-2")
+    cae.write_text(f"*Part, name=BRAIN\n{body}\n*End Part\n*Assembly, name=Assembly\n{twice}*End Assembly\n")
+    with pytest.raises(InputError, match="part BRAIN is instanced 2 times"):
+        read_abaqus_mesh(cae)

@@ -180,6 +180,10 @@ def read_abaqus_mesh(path, *, length_unit: str = "mm") -> FEMesh:
     written = ""
     pending: list[str] = []
     pending_at = None
+    part = None                 # the *PART being read (its nodes are placed by its instance)
+    node_part: list = []        # each node's part (None outside parts)
+    instances: dict = {}        # part -> [(instance name, data lines, (file, line))]
+    inst = None                 # the *INSTANCE being read: its positioning lines
 
     def flush_element():
         nonlocal pending, pending_at
@@ -213,6 +217,17 @@ def read_abaqus_mesh(path, *, length_unit: str = "mm") -> FEMesh:
             pending, pending_at = [], None
             kw, params = _keyword(s)
             mode, etype = None, None
+            if kw == "PART":
+                part = params.get("NAME", "")
+            elif kw == "END PART":
+                part = None
+            elif kw == "INSTANCE":
+                inst = (params.get("NAME", ""), [], (f, no))
+                instances.setdefault(params.get("PART", "").upper(), []).append(inst)
+                mode = "instance"
+                continue
+            elif kw == "END INSTANCE":
+                inst = None
             if kw == "NODE":
                 if params.get("SYSTEM", "R").upper() not in ("R", ""):
                     raise InputError(f"*NODE, SYSTEM={params['SYSTEM']} is not supported (rectangular only)",
@@ -244,6 +259,9 @@ def read_abaqus_mesh(path, *, length_unit: str = "mm") -> FEMesh:
             where_node[nid] = (f, no)
             ids.append(nid)
             xyz.append((c + [0.0, 0.0])[:3])
+            node_part.append(part)
+        elif mode == "instance":
+            inst[1].append((s, f, no))
         elif mode == "element":
             vals = [v for v in (v.strip() for v in s.split(",")) if v != ""]
             # a line ending in a comma, or full (16 entries, ABAQUS's maximum), continues
@@ -262,6 +280,7 @@ def read_abaqus_mesh(path, *, length_unit: str = "mm") -> FEMesh:
         flush_element()
     if not ids:
         raise InputError("no *NODE data in the deck", path=path)
+    xyz = _instances_placed(np.array(xyz, dtype=float), node_part, instances, path)
     node_ids = np.array(ids, dtype=np.int64)
     order = {n: i for i, n in enumerate(ids)}
     blocks = []
@@ -277,7 +296,51 @@ def read_abaqus_mesh(path, *, length_unit: str = "mm") -> FEMesh:
     if not blocks:
         raise InputError("no solid elements (C3D4, C3D10, C3D8, C3D20) in the deck"
                          + (f"; found {', '.join(sorted(skipped))}" if skipped else ""), path=path)
-    return FEMesh(str(path), "abaqus", node_ids, np.array(xyz, dtype=float) * factor, blocks, skipped)
+    return FEMesh(str(path), "abaqus", node_ids, xyz * factor, blocks, skipped)
+
+
+def _instances_placed(xyz: np.ndarray, node_part: list, instances: dict, path) -> np.ndarray:
+    """The nodes of each ``*PART`` where its ``*INSTANCE`` puts them in the assembly (an
+    Abaqus/CAE input file): the first data line a translation, the optional second a rotation
+    by an angle (degrees, right-handed) about the axis from point a to point b, applied after
+    the translation (Abaqus Keywords Reference, ``*INSTANCE``).  A part instanced more than
+    once has two places for one node label: an InputError."""
+    parts = {p for p in node_part if p is not None}
+    if not parts:
+        return xyz
+    from scipy.spatial.transform import Rotation
+    out = xyz.copy()
+    owner = np.array([p if p is not None else "" for p in node_part], dtype=object)
+    for p in parts:
+        inst = instances.get(p.upper(), [])
+        if len(inst) > 1:
+            raise InputError(f"part {p} is instanced {len(inst)} times ({', '.join(i[0] for i in inst)}): its node "
+                             "labels would stand for several places; give compare one instance per part",
+                             path=inst[1][2][0], line=inst[1][2][1])
+        if not inst:
+            continue
+        sel = owner == p
+        lines = inst[0][1]
+        for k, (text, f, no) in enumerate(lines[:2]):
+            try:
+                v = [float(x) for x in text.split(",") if x.strip() != ""]
+            except ValueError:
+                raise InputError(f"an *INSTANCE line needs numbers, got {text!r}", path=f, line=no) from None
+            if k == 0:
+                if len(v) != 3:
+                    raise InputError(f"an *INSTANCE translation needs 3 numbers, got {len(v)}", path=f, line=no)
+                out[sel] += np.array(v)
+            else:
+                if len(v) != 7:
+                    raise InputError(f"an *INSTANCE rotation needs 7 numbers (point a, point b, angle), got {len(v)}",
+                                     path=f, line=no)
+                a, b = np.array(v[:3]), np.array(v[3:6])
+                axis = b - a
+                if not np.linalg.norm(axis) > 0:
+                    raise InputError("an *INSTANCE rotation axis from a point to itself", path=f, line=no)
+                R = Rotation.from_rotvec(axis / np.linalg.norm(axis) * np.radians(v[6])).as_matrix()
+                out[sel] = a + (out[sel] - a) @ R.T
+    return out
 
 
 def _read_meshio(path):
