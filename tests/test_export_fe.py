@@ -390,6 +390,25 @@ def test_markers_of_another_ct_frame_exit_2(case):
     assert not (folder / "ras_out").exists()
 
 
+@pytest.mark.parametrize("etype, ok", [("C3D8R", True), ("C3D8X", False), ("C3D4", False), ("C3D20R", False)])
+def test_deck_element_type_must_be_a_variant_of_the_meshs(case, etype, ok):
+    """deck.element_type writes a variant of the mesh's element (C3D8R for C3D8); one that is
+    no ABAQUS element (C3D8X) or has other nodes (C3D4, C3D20R for an 8-node mesh) is exit 2
+    naming the key: they had been written as given (8-node rows under TYPE=C3D4)."""
+    folder, _, _, _ = case
+    cfg = yaml.safe_load((folder / "export.yaml").read_text())
+    cfg["deck"] = {"element_type": etype}
+    (folder / f"e_{etype}.yaml").write_text(yaml.safe_dump(cfg))
+    out = folder / f"e_{etype}"
+    res = CliRunner().invoke(cli, ["export-fe", str(folder / f"e_{etype}.yaml"), "-o", str(out)])
+    if ok:
+        assert res.exit_code == 0, res.output
+        assert "*ELEMENT, TYPE=C3D8R" in (out / "abaqus" / "model.inp").read_text().upper()
+    else:
+        assert res.exit_code == 2 and "deck.element_type" in res.output and etype in res.output, res.output
+        assert not out.exists()
+
+
 def test_failed_check_exits_1(case):
     folder, _, _, _ = case
     cfg = yaml.safe_load((folder / "export.yaml").read_text())

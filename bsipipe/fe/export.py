@@ -875,6 +875,17 @@ def render_files(h: Handoff, cfg, sources: dict[str, str | None], *,
         written = etype or b.element_type
         if "/" in written:
             raise HandoffError(f"the mesh mixes element types {written}; name one", key="deck.element_type")
+        if etype:
+            # a variant of the mesh's own element (C3D8R, C3D8H for a C3D8 mesh): the same nodes
+            from ..geometry.shape_functions import element_type
+            try:
+                given, own = element_type(etype), element_type(b.element_type.split("/")[0])
+            except KeyError as e:
+                raise HandoffError(str(e).strip("'\""), key="deck.element_type") from None
+            if given.name != own.name:
+                raise HandoffError(f"{etype} is a {given.name} element ({given.n_nodes} nodes), the mesh's are "
+                                   f"{b.element_type} ({own.n_nodes} nodes): give a variant of {own.name} "
+                                   f"({own.name}R, {own.name}H, ...)", key="deck.element_type")
         blocks.append((written, b.element_ids, b.connectivity))
     fixed_dir = cfg.interface.anchors == "sliding"
     where = (f"indentor contact point {np.round(h.contact_point_mm, 4).tolist()} mm, direction of "

@@ -193,6 +193,9 @@ ELEMENTS: dict[str, ElementType] = {
 MESHIO_TO_ABAQUS = {"tetra": "C3D4", "tetra10": "C3D10", "hexahedron": "C3D8", "hexahedron20": "C3D20"}
 
 
+_ABAQUS_SUFFIXES = set("RHIMTPS")
+
+
 def element_type(name: str) -> ElementType:
     """The element for an ABAQUS type (``C3D8``, ``C3D8R``, ``C3D10M``, ...) or a meshio cell type.
 
@@ -201,8 +204,10 @@ def element_type(name: str) -> ElementType:
     """
     key = MESHIO_TO_ABAQUS.get(name, name).upper()
     for base in ("C3D20", "C3D10", "C3D8", "C3D4"):
-        # C3D8R, C3D8H, C3D8I, C3D10M, C3D20R, ...: same nodes, same interpolation
-        if key == base or (key.startswith(base) and key[len(base):].isalpha()):
+        # C3D8R, C3D8H, C3D8I, C3D10M, C3D20R, C3D8RT, ...: same nodes, same interpolation
+        # (ABAQUS's suffixes: Reduced integration, Hybrid, Incompatible modes, Modified,
+        # Temperature, Pore pressure, S for C3D10HS); another letter is no ABAQUS element
+        if key == base or (key.startswith(base) and set(key[len(base):]) <= _ABAQUS_SUFFIXES and key[len(base):]):
             return ELEMENTS[base]
     raise KeyError(f"element type {name!r} is not supported (C3D4, C3D10, C3D8, C3D20 and variants)")
 
