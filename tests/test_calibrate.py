@@ -166,6 +166,52 @@ def test_calibrate_command_stereo_files(tmp_path):
     assert d["loop"] is None and "inputs_sha256" in d["provenance"]
 
 
+@pytest.mark.parametrize("case", ["exchanged", "shifted", "unpaired"])
+def test_stereo_pairs_that_were_not_taken_together(tmp_path, case):
+    """Stereo extrinsics come from same-named files; a right folder whose names were
+    exchanged (01 <-> 04, 07 <-> 12), shifted by one, or lacking two frames is what a real
+    export can give.  Exchanged pairs are left out and named (their relative pose 16 deg and
+    109 mm from the others'): the baseline stays within 0.5 mm of 83.6 (it had been 168.6 mm,
+    exit 0); names shifted throughout are exit 1 naming the disagreement (RMS 58 px, exit 0
+    before); frames without a partner are named in a warning (they had been dropped without a
+    word)."""
+    for side in ("left", "right"):
+        (tmp_path / side).mkdir()
+    for f in STEREO.glob("left*.jpg"):
+        shutil.copy(f, tmp_path / "left" / f.name[4:])
+    names = sorted(f.name[5:] for f in STEREO.glob("right*.jpg"))
+    if case == "exchanged":
+        swap = {"01.jpg": "04.jpg", "04.jpg": "01.jpg", "07.jpg": "12.jpg", "12.jpg": "07.jpg"}
+        dest = {n: swap.get(n, n) for n in names}
+    elif case == "shifted":
+        dest = dict(zip(names, names[1:] + names[:1]))
+    else:
+        dest = {n: n for n in names if n not in ("05.jpg", "06.jpg")}
+    for n, d in dest.items():
+        shutil.copy(STEREO / f"right{n}", tmp_path / "right" / d)
+    out = tmp_path / "out"
+    r = CliRunner().invoke(cli, ["calibrate", "--stereo", f"left={tmp_path / 'left'}", "--stereo",
+                                 f"right={tmp_path / 'right'}", "--pattern", "chessboard", "--grid", "9x6",
+                                 "--spacing-mm", "25", "--subpix-window-px", "11", "--no-loop", "-o", str(out)])
+    print(r.output)
+    if case == "shifted":
+        assert r.exit_code == 1 and "relative poses of left and right disagree" in r.output and not out.exists()
+        return
+    assert r.exit_code == 0, r.output
+    d = json.loads((out / "calibration.json").read_text())
+    s = d["stereo"]
+    assert abs(s["baseline_mm"] - 83.6) < 0.5
+    codes = {w["code"]: w for w in d["warnings"]}
+    if case == "exchanged":
+        assert set(s["rejected_frames"]) == {"01.jpg", "04.jpg", "07.jpg", "12.jpg"}
+        assert "stereo-pairs-left-out" in codes and not set(s["frames"]) & set(s["rejected_frames"])
+        assert all(s["pair_deviation"][n]["deg"] > 10 for n in s["rejected_frames"])
+        assert max(v["deg"] for n, v in s["pair_deviation"].items() if n not in s["rejected_frames"]) < 2
+    else:
+        assert s["unpaired_frames"] == {"left": ["05.jpg", "06.jpg"]} and s["rejected_frames"] == {}
+        assert "stereo-unpaired-frames" in codes and "05.jpg" in codes["stereo-unpaired-frames"]["message"]
+
+
 def test_calibrate_command_single_camera_with_loop(tmp_path):
     out = tmp_path / "out"
     r = CliRunner().invoke(cli, ["calibrate", "--images", str(STEREO / "left*.jpg"), "--pattern", "chessboard",

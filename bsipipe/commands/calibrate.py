@@ -523,6 +523,20 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
         except ValueError as e:
             raise ProcessingError(f"stereo {a}-{b}: {e}", path=cfg.stereo[b]) from None
         result["stereo"] = st.to_dict()
+        if st.rejected:
+            warnings.append(warning(
+                "stereo-pairs-left-out",
+                f"calibrate: stereo {a}-{b}: {len(st.rejected)} of the {len(st.rejected) + len(st.frames)} shared "
+                "frames left out, their relative pose unlike the other pairs' (images not taken together: file names "
+                "exchanged or shifted between the folders?): "
+                + "; ".join(f"{n}: {why}" for n, why in st.rejected.items()), logger=log, view=f"{a}-{b}",
+                frames=dict(st.rejected)))
+        if st.unpaired:
+            warnings.append(warning(
+                "stereo-unpaired-frames",
+                f"calibrate: stereo {a}-{b}: frames without a same-named partner in the other folder are not used "
+                "for the stereo extrinsics: " + "; ".join(f"{v}: {', '.join(fs)}" for v, fs in st.unpaired.items()),
+                logger=log, view=f"{a}-{b}", frames=dict(st.unpaired)))
         if st.rms_px > LARGE_RMS_PX:
             warnings.append(warning(
                 "large-rms", f"calibrate: stereo {a}-{b}: reprojection RMS {st.rms_px:.2f} px is over "

@@ -804,6 +804,9 @@ class StereoResult:
     n_points: int
     relabelled: dict[str, int] = field(default_factory=dict)
     note: str = ""
+    pair_deviation: dict[str, dict] = field(default_factory=dict)   # frame -> {"deg", "mm"}
+    rejected: dict[str, str] = field(default_factory=dict)          # frame -> why it was left out
+    unpaired: dict[str, list[str]] = field(default_factory=dict)    # camera -> its frames the other lacks
 
     def to_dict(self) -> dict:
         import cv2
@@ -812,6 +815,8 @@ class StereoResult:
                 "rms_px": self.rms_px, "baseline_mm": float(np.linalg.norm(self.T_mm)),
                 "rotation_deg": float(np.degrees(np.linalg.norm(rvec))),
                 "frames": list(self.frames), "n_points": self.n_points,
+                "pair_deviation": {k: dict(v) for k, v in self.pair_deviation.items()},
+                "rejected_frames": dict(self.rejected), "unpaired_frames": {k: list(v) for k, v in self.unpaired.items()},
                 "relabelled_frames": dict(self.relabelled), "note": self.note,
                 "convention": "x_B = R x_A + T_mm (points in camera A's frame to camera B's)"}
 
@@ -837,7 +842,9 @@ def stereo_calibrate(cam_a: CameraModel, cam_b: CameraModel, names: tuple[str, s
         perms = target_symmetries(target_all)
         if len(perms) > 1:
             fb, relabelled, note = _resolve_symmetry(cam_a, cam_b, common, frames_a, frames_b, perms, target_all)
-    obj, pa, pb = [], [], []
+    unpaired = {names[0]: sorted(set(frames_a) - set(frames_b)), names[1]: sorted(set(frames_b) - set(frames_a))}
+    unpaired = {k: v for k, v in unpaired.items() if v}
+    obj, pa, pb, used = [], [], [], []
     for n in common:
         va, vb = frames_a[n], fb[n]
         ids = np.intersect1d(va.ids, vb.ids)
@@ -848,14 +855,72 @@ def stereo_calibrate(cam_a: CameraModel, cam_b: CameraModel, names: tuple[str, s
         obj.append(va.object_points[ia].astype(np.float32).reshape(-1, 1, 3))
         pa.append(cam_a.remove_extras(va.image_points[ia]).astype(np.float32).reshape(-1, 1, 2))
         pb.append(cam_b.remove_extras(vb.image_points[ib]).astype(np.float32).reshape(-1, 1, 2))
+        used.append(n)
     if not obj:
         raise ValueError("no shared frame has 6 or more target points seen by both cameras")
+    deviation, rejected = _pair_consistency(cam_a, cam_b, names, used, frames_a, fb)
+    keep = [k for k, n in enumerate(used) if n not in rejected]
+    obj, pa, pb = [obj[k] for k in keep], [pa[k] for k in keep], [pb[k] for k in keep]
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
     out = cv2.stereoCalibrate(obj, pa, pb, cam_a.camera_matrix, cam_a.dist_coeffs, cam_b.camera_matrix,
                               cam_b.dist_coeffs, tuple(cam_a.image_size), flags=cv2.CALIB_FIX_INTRINSIC, criteria=crit)
     rms, R, T = out[0], out[5], out[6]
-    return StereoResult(names, np.asarray(R), np.asarray(T).ravel(), float(rms), common,
-                        int(sum(len(o) for o in obj)), relabelled, note)
+    return StereoResult(names, np.asarray(R), np.asarray(T).ravel(), float(rms), [used[k] for k in keep],
+                        int(sum(len(o) for o in obj)), relabelled, note, deviation, rejected, unpaired)
+
+
+#: A shared frame's relative pose (camera A to B) may differ from the others' by this much
+#: (median over them) before the pair is left out: 5 times the frames' typical deviation, and
+#: at least 2 degrees and a tenth of the baseline (the real chessboard pair: 0.16-0.51 deg and
+#: 0.9-3.3 mm on an 84 mm baseline; two right images exchanged: 16 deg and 108 mm).
+PAIR_DEV_FACTOR = 5.0
+PAIR_DEV_MIN_DEG = 2.0
+PAIR_DEV_MIN_BASELINE = 0.1
+
+
+def _pair_consistency(cam_a: CameraModel, cam_b: CameraModel, names: tuple[str, str], frames: list[str],
+                      frames_a: dict[str, ViewData], frames_b: dict[str, ViewData]) -> tuple[dict, dict]:
+    """Each shared frame's relative pose (``R_b R_a^T``, ``t_b - R t_a`` from the two cameras'
+    own poses of the target) against the other frames': the median rotation angle (deg) and
+    translation (mm) between it and each of them.  Both cameras see one rigid rig, so every
+    pair of images taken together gives the same relative pose; a pair that does not (file
+    names exchanged or shifted between the folders, an image of another moment) is left out,
+    beyond :data:`PAIR_DEV_FACTOR` times the median deviation, :data:`PAIR_DEV_MIN_DEG` and
+    :data:`PAIR_DEV_MIN_BASELINE` of the baseline.  Where the median frame itself is beyond
+    those floors, the pairs do not agree at all: a ValueError.  Returns ``({frame: {"deg",
+    "mm"}}, {frame: why left out})``; with fewer than 3 frames nothing can be judged."""
+    import cv2
+    if len(frames) < 3:
+        return {}, {}
+    rel = {}
+    for n in frames:
+        ra, ta = cam_a.solve_pose(frames_a[n].object_points, frames_a[n].image_points)
+        rb, tb = cam_b.solve_pose(frames_b[n].object_points, frames_b[n].image_points)
+        R = cv2.Rodrigues(np.asarray(rb, float))[0] @ cv2.Rodrigues(np.asarray(ra, float))[0].T
+        rel[n] = (R, np.ravel(tb) - R @ np.ravel(ta))
+    dev = {}
+    for n, (R, t) in rel.items():
+        ang = [np.degrees(np.arccos(np.clip((np.trace(R @ R2.T) - 1) / 2, -1, 1))) for m, (R2, _) in rel.items()
+               if m != n]
+        mm = [float(np.linalg.norm(t - t2)) for m, (_, t2) in rel.items() if m != n]
+        dev[n] = {"deg": float(np.median(ang)), "mm": float(np.median(mm))}
+    baseline = float(np.median([np.linalg.norm(t) for _, t in rel.values()]))
+    typ_deg = float(np.median([d["deg"] for d in dev.values()]))
+    typ_mm = float(np.median([d["mm"] for d in dev.values()]))
+    lim_deg = max(PAIR_DEV_FACTOR * typ_deg, PAIR_DEV_MIN_DEG)
+    lim_mm = max(PAIR_DEV_FACTOR * typ_mm, PAIR_DEV_MIN_BASELINE * baseline)
+    if typ_deg > PAIR_DEV_MIN_DEG or typ_mm > PAIR_DEV_MIN_BASELINE * baseline:
+        raise ValueError(f"the shared frames' relative poses of {names[0]} and {names[1]} disagree (median "
+                         f"{typ_deg:.3g} deg and {typ_mm:.3g} mm between frames, on a {baseline:.3g} mm baseline): "
+                         "the files of one name are not images taken together (names shifted or mismatched "
+                         "between the two folders?)")
+    rejected = {n: (f"its relative pose differs from the other pairs' by {d['deg']:.3g} deg and {d['mm']:.3g} mm "
+                    f"(median; limits {lim_deg:.3g} deg, {lim_mm:.3g} mm): not images taken together")
+                for n, d in dev.items() if d["deg"] > lim_deg or d["mm"] > lim_mm}
+    if len(frames) - len(rejected) < 2:
+        raise ValueError(f"{len(rejected)} of the {len(frames)} shared frames have relative poses unlike the others': "
+                         "the files of one name are not images taken together")
+    return dev, rejected
 
 
 def _resolve_symmetry(cam_a, cam_b, common, frames_a, frames_b, perms, target_all):
