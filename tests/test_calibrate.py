@@ -212,6 +212,31 @@ def test_stereo_pairs_that_were_not_taken_together(tmp_path, case):
         assert "stereo-unpaired-frames" in codes and "05.jpg" in codes["stereo-unpaired-frames"]["message"]
 
 
+def test_identical_images_are_one_view(tmp_path):
+    """Copies of one image (byte for byte, or the same pixels in another format) are one view:
+    five copies of left13 had been counted as six views (18 for 13 images), moving k3 from
+    0.25 to 0.63 and shrinking the parameters' spread, with no warning."""
+    src = tmp_path / "img"
+    src.mkdir()
+    for f in sorted(STEREO.glob("left*.jpg")):
+        shutil.copy(f, src / f.name)
+    for k in range(3):
+        shutil.copy(STEREO / "left13.jpg", src / f"left13_copy{k}.jpg")
+    cv2.imwrite(str(src / "left13_again.png"), cv2.imread(str(STEREO / "left13.jpg"), cv2.IMREAD_UNCHANGED))
+    out = tmp_path / "out"
+    r = CliRunner().invoke(cli, ["calibrate", "--images", str(src), "--pattern", "chessboard", "--grid", "9x6",
+                                 "--spacing-mm", "25", "--view", "left", "--no-loop", "-o", str(out)])
+    print(r.output)
+    assert r.exit_code == 0, r.output
+    d = json.loads((out / "calibration.json").read_text())
+    v = d["views"]["left"]
+    dup = {k: why for k, why in v["rejected_views"].items() if "same image as left13.jpg" in why}
+    assert set(dup) == {"left13_copy0.jpg", "left13_copy1.jpg", "left13_copy2.jpg", "left13_again.png"}
+    assert v["n_views"] + len(v["rejected_views"]) == 17 and "left13.jpg" in v["per_image_rms_px"]
+    assert abs(v["rms_px"] - 0.408) < 0.02
+    assert any(w["code"] == "duplicate-views" for w in d["warnings"])
+
+
 def test_calibrate_command_single_camera_with_loop(tmp_path):
     out = tmp_path / "out"
     r = CliRunner().invoke(cli, ["calibrate", "--images", str(STEREO / "left*.jpg"), "--pattern", "chessboard",

@@ -165,10 +165,14 @@ def build_config(config_path=None, *, images=None, pattern=None, grid=None, spac
 
 
 def _detect_source(path: str, cfg: CalibrateConfig, kind: str, size: list, views: dict, rejected: dict,
-                   frames: dict | None, sizes: dict, mismatches: dict):
+                   frames: dict | None, sizes: dict, mismatches: dict, seen: dict):
     """Detect the target in every frame of one source; fill ``views`` / ``rejected`` / ``frames``,
     ``sizes`` (key -> ((w, h), file, frame index)) and ``mismatches`` (key -> the board size a
-    view shows when ``--grid`` does not fit it, or None)."""
+    view shows when ``--grid`` does not fit it, or None).  ``seen`` (digest of the pixels ->
+    key) holds the camera's images so far: an image identical to an earlier one (a file copied,
+    a folder given as --view and --stereo) is one view, not two; it is left out of the
+    camera's views (rejected, naming the first) and still pairs as a stereo frame."""
+    import hashlib
     from ..imaging.gridfind import DetectionFailed, GridDetection, GridMismatch, find_target, parse_grid
     from ..imaging.calibrate import ViewData
     from ..io.images import iter_frames
@@ -190,6 +194,14 @@ def _detect_source(path: str, cfg: CalibrateConfig, kind: str, size: list, views
                       fr.image.dtype)
         if size[0] is None:
             size[0], size[1] = (w, h), f"{path}: {fr.name}"
+        digest = hashlib.sha1(np.ascontiguousarray(fr.image).tobytes()).hexdigest()
+        first = seen.setdefault(digest, key)
+        if first != key:
+            rejected[key] = f"the same image as {first} (identical pixels): counted once"
+            if frames is not None and first in views:
+                frames[fr.name] = views[first]
+            if frames is None or first in views or first in rejected:
+                continue
         try:
             if cfg.pattern == "chessboard":
                 from ..imaging.gridfind import find_chessboard
@@ -204,7 +216,8 @@ def _detect_source(path: str, cfg: CalibrateConfig, kind: str, size: list, views
             continue
         ambiguous |= det.ambiguous
         v = ViewData(key, det.image_points, det.object_points, det.ids)
-        views[key] = v
+        if key not in rejected:
+            views[key] = v
         if frames is not None:
             frames[fr.name] = v
     return ambiguous
@@ -433,11 +446,21 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
         size: list = [None, None, None]  # (w, h), first image, intensifier field centre
         sizes: dict = {}
         mismatches: dict = {}
+        seen: dict = {}
         for kind, path in sources:
             from ..io.images import list_image_files
             inputs.extend([path] if os.path.isfile(path) else [str(q) for q in list_image_files(path)])
             frames = stereo_frames.setdefault(name, {}) if kind == "stereo" else None
-            ambiguous_any |= _detect_source(path, cfg, kind, size, views, rejected, frames, sizes, mismatches)
+            ambiguous_any |= _detect_source(path, cfg, kind, size, views, rejected, frames, sizes, mismatches, seen)
+        same = {k: why for k, why in rejected.items() if why.startswith("the same image as")}
+        if same:
+            warnings.append(warning(
+                "duplicate-views",
+                f"calibrate: {name}: {len(same)} image(s) identical to another of the camera's (a copied file, or one "
+                "folder given twice): each counted once, else they would weigh double and shrink the parameters' "
+                "spread: " + "; ".join(f"{k}: {why[len('the same image as '):].split(' (')[0]}"
+                                        for k, why in list(same.items())[:6])
+                + (f" and {len(same) - 6} more" if len(same) > 6 else ""), logger=log, view=name, images=same))
         if sizes:
             size[0] = _check_sizes(sizes)
         if len(views) < 3:
