@@ -668,6 +668,16 @@ def calibrate_with_rejection(views: Sequence[ViewData], image_size: tuple[int, i
         if not judged:
             break
         pulling = [j for j in judged if j[1] >= OUTLIER_MIN_INFLUENCE]
+        if not pulling and len(judged) > 1:
+            group = _outliers_together(cal, judged, image_size, spec, twist_centre_px, min_views)
+            if group:
+                for name, why in group.items():
+                    rejected[name] = f"outlier: {why}"
+                    flagged.pop(name, None)
+                    log.info("calibrate: leaving out %s: %s", name, rejected[name])
+                cal = calibrate_camera([u for u in cal.views if u.name not in group], image_size, spec,
+                                       init=cal.camera, twist_centre_px=twist_centre_px)
+                continue
         if not pulling:
             for _, _, name, why, _ in judged:
                 if name not in flagged:
@@ -683,6 +693,40 @@ def calibrate_with_rejection(views: Sequence[ViewData], image_size: tuple[int, i
     cal.rejected = rejected
     cal.flagged = flagged
     return cal
+
+
+def _outliers_together(cal: Calibration, judged: list, image_size, spec: ModelSpec, twist_centre_px,
+                       min_views: int) -> dict[str, str]:
+    """Views over their threshold that do not pull the model alone may pull it together: two
+    bad views (a wire across the plate in both) each keep the other views' RMS up when the
+    other is left out, so neither is judged an outlier one at a time.  Left out together, if
+    the other views' RMS falls by ``OUTLIER_MIN_INFLUENCE`` or more, each is judged again held
+    out against that cleaner fit; those over its threshold are the outliers (name -> why)."""
+    names = {j[2] for j in judged}
+    keep = [u for u in cal.views if u.name not in names]
+    if len(keep) < max(min_views, 3):
+        return {}
+    try:
+        cal_wo = calibrate_camera(keep, image_size, spec, init=cal.camera, twist_centre_px=twist_centre_px)
+    except ValueError:
+        return {}
+    others_with = _rms(np.concatenate([cal.residuals[u.name] for u in keep]))
+    influence = 1.0 - cal_wo.rms_px / others_with if others_with > 0 else 0.0
+    if influence < OUTLIER_MIN_INFLUENCE:
+        return {}
+    thr = outlier_threshold_px([cal_wo.per_view_rms_px[u.name] for u in keep])
+    out = {}
+    index = {v.name: k for k, v in enumerate(cal.views)}
+    for name in sorted(names, key=index.get):
+        k = index[name]
+        v = cal.views[k]
+        r, t = cal_wo.camera.solve_pose(v.object_points, v.image_points, cal.rvecs[k], cal.tvecs[k])
+        held = _rms(v.image_points - cal_wo.camera.project(v.object_points, r, t))
+        if held > thr:
+            out[name] = (f"held out {held:.3f} px > threshold {thr:.3f} px against a fit without "
+                         f"{', '.join(sorted(names))}, which together pull the model: leaving them out changes the "
+                         f"other views' RMS by {-100 * influence:+.1f} % (one at a time each hid the other)")
+    return out
 
 
 #: Views a leave-one-view-out error needs: each refit keeps the 3 a calibration needs.
