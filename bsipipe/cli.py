@@ -41,6 +41,9 @@ def handle_errors(fn):
         ctx = click.get_current_context()
         verbose = (ctx.find_root().obj or {}).get("verbose", 0)
         try:
+            if kwargs.get("out"):
+                from .provenance import check_output_folder
+                check_output_folder(kwargs["out"])
             return fn(*args, **kwargs)
         except BsipipeError as e:
             if verbose:

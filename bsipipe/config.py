@@ -98,11 +98,29 @@ def load_yaml(path: str | os.PathLike) -> Any:
     except (OSError, UnicodeDecodeError) as e:
         raise InputError(f"cannot read config: {e}", path=path) from None
     try:
-        return yaml.safe_load(text)
+        return yaml.load(text, Loader=_UniqueKeyLoader)
     except yaml.YAMLError as e:
         line = getattr(getattr(e, "problem_mark", None), "line", None)
         raise InputError(f"invalid YAML: {getattr(e, 'problem', e)}", path=path,
                          line=None if line is None else line + 1) from None
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """YAML's safe loader that refuses a key given twice in one mapping (PyYAML keeps the last
+    silently: ``diameter_mm: 18`` then ``diameter_mm: 20`` would fit with 20)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen: dict = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            try:
+                first = seen.setdefault(key, key_node.start_mark.line)
+            except TypeError:           # an unhashable key: the base class says so
+                continue
+            if first != key_node.start_mark.line:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"key {key!r} given twice (also line {first + 1})", key_node.start_mark)
+        return super().construct_mapping(node, deep=deep)
 
 
 def load_config(model: type[M], path: str | os.PathLike) -> M:

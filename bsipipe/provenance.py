@@ -149,6 +149,24 @@ def atomic_write_bytes(path: str | os.PathLike, data) -> None:
         raise
 
 
+def check_output_folder(out: str | os.PathLike) -> None:
+    """Refuse, before any work, an output folder that cannot be made: the path or one of its
+    parents is a file, or the nearest existing folder is not writable (an InputError naming
+    it; found only when the results are written, after the work, it had been an internal
+    error)."""
+    from .errors import InputError
+    p = Path(out).absolute()
+    if p.exists() and not p.is_dir():
+        raise InputError("the output folder is a file", path=p)
+    for parent in p.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise InputError(f"cannot make the output folder {p}: {parent} is a file", path=parent)
+            if not os.access(parent, os.W_OK | os.X_OK):
+                raise InputError(f"cannot make the output folder {p}: {parent} is not writable", path=parent)
+            return
+
+
 class ResultSet:
     """Collects a command's result files and writes them all-or-nothing.
 

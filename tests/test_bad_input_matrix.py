@@ -362,6 +362,9 @@ CASES: list[Case] = [
     _c("fit-config-zero-geometry", "fit-ogden", "config diameter_mm: 0",
        lambda b, d: (["fit-ogden", GOOD_LOG, "--config", p := _write_yaml(d / "fit.yaml", {"diameter_mm": 0})],
                      p, "key 'diameter_mm'")),
+    _c("fit-config-duplicate-key", "fit-ogden", "config diameter_mm given twice (PyYAML kept the last)",
+       lambda b, d: (["fit-ogden", GOOD_LOG, "--config", p := _put(d / "fit.yaml", [
+           "diameter_mm: 18", "height_mm: 12", "diameter_mm: 20"])], p, "line 3")),
     _c("width-csv-missing-column", "fit-ogden", "--width-csv without width_mm",
        lambda b, d: ([*FIT, GOOD_LOG, "--width-csv", p := _put(d / "w.csv", ["time_s,w", "0,18", "1,18.2"])],
                      p, "line 1")),
@@ -825,3 +828,19 @@ def test_a_marker_seeded_in_one_view_only_is_a_warning(base, tmp_path):
     assert len(w) == 1 and w[0]["markers"] == {"cam1": [name]}
     p3 = pd.read_csv(out / "markers3d.csv")
     assert name not in set(p3["marker"]) and name in set(pd.read_csv(out / "markers2d.csv")["marker"])
+
+
+@pytest.mark.parametrize("command", ["fit-ogden", "register"])
+def test_output_folder_under_a_file_is_refused_before_the_work(tmp_path, command):
+    """-o a/b where a is a file: exit 2 naming a, before any work (it had been an internal
+    error, exit 1, once the fit was done and its results were written)."""
+    from click.testing import CliRunner
+
+    from bsipipe.cli import cli
+    (tmp_path / "afile").write_text("a file, not a folder\n")
+    args = ([*FIT, str(GOOD_LOG)] if command == "fit-ogden" else
+            ["register", "--ct", str(tmp_path / "none.fcsv"), "--xray", str(tmp_path / "none.csv"),
+             "--reference", "R1"])
+    r = CliRunner().invoke(cli, [*args, "-o", str(tmp_path / "afile" / "sub")])
+    assert r.exit_code == 2 and f"{tmp_path / 'afile'} is a file" in r.output, r.output
+    assert "internal error" not in r.output and (tmp_path / "afile").read_text() == "a file, not a folder\n"
