@@ -98,7 +98,7 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
 @click.option("--max-strain", type=click.FloatRange(0, 1, min_open=True, max_open=True),
               help="Fit only up to this nominal strain past contact.")
 @click.option("--bootstrap", type=click.IntRange(min=0), help="Residual-bootstrap resamples checking the CIs.")
-@click.option("--seed", type=int, help="Seed of the bootstrap.")
+@click.option("--seed", type=click.IntRange(min=0), help="Seed of the bootstrap (a non-negative integer).")
 @click.option("--contact-mm", "contact_mm", multiple=True, type=float,
               help="Contact, not detected: displacement (mm) past the log's first sample, positive in compression, "
                    "at which the platen touched (negative: before the record began). Once for all logs or once per log.")
@@ -173,7 +173,7 @@ def calibrate(config, out, **opts) -> None:
 @click.option("--loop/--no-loop", default=True, help="Close the loop: effects scale, moving-reference (default on).")
 @click.option("--perturbation-draws", type=click.IntRange(min=0), default=2000, show_default=True,
               help="Re-fits of the perturbation TRE estimate (0: skip).")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the perturbation estimate.")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of the perturbation estimate.")
 @click.option("-o", "--out", required=True, type=click.Path(file_okay=False), help="Output folder.")
 @handle_errors
 def register(ct, xray, references, out, **opts) -> None:

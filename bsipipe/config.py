@@ -146,4 +146,4 @@ class FitConfig(StrictModel):
     loop: bool = True
     max_strain: float | None = Field(None, gt=0, lt=1, description="fit only up to this nominal strain")
     bootstrap: int = Field(200, ge=0, description="bootstrap resamples that check the Jacobian intervals")
-    seed: int = 0
+    seed: int = Field(0, ge=0, description="seed of the bootstrap (a non-negative integer)")

@@ -93,6 +93,29 @@ def test_loop_names_a_hidden_baseline_drift_and_options_override_the_config(tmp_
     assert d["provenance"]["config"]["height_mm"] == 12.0
 
 
+@pytest.mark.parametrize("offset_n", [0.0, 0.05, 5.0])
+def test_load_cell_offset(tmp_path, offset_n):
+    """An untared load cell (+0.05 N, +5 N on a log whose force spans ~0.5 N): the loop fits
+    the level (load-baseline-drift) and the parameters stay; with --no-loop the declared model
+    takes 0 N and a force-baseline-ignored warning says so (mu 280 Pa for 720 had come without
+    a word); the relative errors are against the force the specimen carries, so an offset
+    does not shrink them (0.00074 with +5 N for 0.053 without)."""
+    frame, _ = synth_compression_log(baseline_n=offset_n, seed=33)        # mu 720 Pa, alpha -4.7
+    path = write_bluehill2(frame, tmp_path / "log.csv", label="S3", geometry={"diameter_mm": 18.0, "height_mm": 12.0})
+    res = {}
+    for loop in ("--loop", "--no-loop"):
+        out = tmp_path / loop
+        r = _invoke("fit-ogden", path, loop, "--bootstrap", "0", "-o", out)
+        assert r.exit_code == 0, r.output
+        res[loop] = json.loads((out / "fit.json").read_text())
+    d = res["--loop"]
+    assert abs(d["params"]["mu_pa"] / 720.0 - 1) < 0.03 and abs(d["params"]["alpha"] + 4.7) < 0.1
+    assert 0.01 < d["metrics"]["max_rel_err"] < 0.2
+    assert "force-baseline-ignored" not in [w["code"] for w in d["warnings"]]
+    codes = [w["code"] for w in res["--no-loop"]["warnings"]]
+    assert ("force-baseline-ignored" in codes) == (offset_n > 0)
+
+
 def test_stress_tables_one_mode_per_table(tmp_path):
     paths = []
     for tag, mode in (("UT", "uniaxial"), ("ET", "equibiaxial"), ("PS", "pure-shear")):

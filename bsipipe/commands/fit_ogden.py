@@ -284,6 +284,37 @@ def _cards(result) -> dict[str, str]:
         raise ProcessingError(f"the fitted parameters make no valid FE material: {e}") from None
 
 
+#: A measured unloaded force the model leaves out is warned about beyond this share of the
+#: log's force range (and 5 times the load noise where measured).
+BASELINE_WARN_FRACTION = 0.01
+
+
+def _baseline_ignored(input_info: list[dict], data) -> list[dict]:
+    """``force-baseline-ignored`` warnings: a log whose samples before the contact measure an
+    unloaded force away from zero (a load cell not tared, an offset) fitted by a model that
+    takes the load cell's zero as the unloaded force (the declared model, ``--no-loop``, or a
+    loop that did not take ``load-baseline-drift``): every force is then off by that level,
+    and the fitted parameters and contact with it."""
+    from ..quality import warning
+    out = []
+    for info, lg in zip(input_info, data):
+        b = info.get("force_baseline") or {}
+        level = float(b.get("level_n", 0.0))
+        if b.get("source", "").startswith("assumed") or level == 0.0:
+            continue
+        span = float(np.ptp(lg.force_n)) if len(lg.force_n) else 0.0
+        noise = lg.force_noise_n
+        if abs(level) > BASELINE_WARN_FRACTION * span and (noise is None or abs(level) > 5.0 * noise):
+            out.append(warning(
+                "force-baseline-ignored",
+                f"fit-ogden: {Path(info['path']).name}: the samples before the contact measure an unloaded force of "
+                f"{level:.4g} N ({100 * abs(level) / span:.2g} % of the log's force range), which the model takes as "
+                "0 N (the load cell's zero): every force of the fit is off by it; tare the load cell, or let the loop "
+                "fit it (load-baseline-drift; not with --no-loop)", log, path=str(info["path"]), level_n=level,
+                force_range_n=span))
+    return out
+
+
 def _fit_quality(final) -> list[dict]:
     """Identifiability warnings of the final fit (:func:`bsipipe.quality.fit_warnings`): the
     material parameters (the law's and the Prony fractions) must not have an interval
@@ -442,6 +473,8 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
                   "rmse": "N" if kind == "logs" else "Pa"},
     }
     result["warnings"] = _fit_quality(final)
+    if kind == "logs" and not spec.baseline_drift:
+        result["warnings"] += _baseline_ignored(input_info, data)
     prov_inputs = paths + ([str(width_csv)] if width_csv is not None else []) + ([str(config)] if config else [])
     result["provenance"] = provenance(cfg, prov_inputs, command="fit-ogden")
 

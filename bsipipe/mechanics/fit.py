@@ -1050,20 +1050,35 @@ def _intervals(problem: _Problem, theta, cov, n, p) -> dict:
     return out
 
 
+def _unloaded_level(lg) -> float:
+    """A log's unloaded force: the median of its samples before the contact (0 N where fewer
+    than five measure it)."""
+    before = lg.force_n[lg.displacement_mm < lg.contact_mm]
+    return float(np.median(before)) if len(before) >= 5 else 0.0
+
+
 def _metrics(problem: _Problem, values: Mapping) -> dict:
+    """RMSE, NRMSE and the relative errors, these against the force the specimen carries (a
+    log's force above its unloaded level, :func:`_unloaded_level`: a load cell's offset would
+    otherwise shrink them, 0.00074 with +5 N for 0.053 without)."""
     raw = problem.raw_residuals(values)
+    if problem.kind == "tables":
+        carried = list(problem.data)
+    else:
+        carried = [d - _unloaded_level(lg) for d, lg in zip(problem.data, problem.logs)]
     r = np.concatenate(raw)
     y = np.concatenate(problem.data)
+    yc = np.concatenate(carried)
     rmse = float(np.sqrt(np.mean(r**2)))
     rng = float(np.ptp(y)) if len(y) else 0.0
-    big = np.abs(y) > 0.1 * np.max(np.abs(y))
-    rel = np.abs(r[big]) / np.abs(y[big])
+    big = np.abs(yc) > 0.1 * np.max(np.abs(yc))
+    rel = np.abs(r[big]) / np.abs(yc[big])
     u = problem.unit
     m = {f"rmse_{u}": rmse, "nrmse": rmse / rng if rng > 0 else float("nan"),
          "max_rel_err": float(np.max(rel)) if len(rel) else float("nan"),
          "median_rel_err": float(np.median(rel)) if len(rel) else float("nan")}
     per = []
-    for k, (rr, d) in enumerate(zip(raw, problem.data)):
+    for k, (rr, d) in enumerate(zip(raw, carried)):
         bigk = np.abs(d) > 0.1 * np.max(np.abs(d)) if len(d) else np.zeros(0, bool)
         relk = np.abs(rr[bigk]) / np.abs(d[bigk])
         entry = {f"rmse_{u}": float(np.sqrt(np.mean(rr**2))) if len(rr) else float("nan"), "n_points": int(len(rr)),
