@@ -116,6 +116,33 @@ def test_load_cell_offset(tmp_path, offset_n):
     assert ("force-baseline-ignored" in codes) == (offset_n > 0)
 
 
+@pytest.mark.parametrize("row, options, ok", [
+    ("Dimensions : Width,0,mm", (), True),              # a template's unused dimension
+    ("Dimensions : Length,,mm", (), True),
+    ("Dimensions : Diameter,0,mm", (), False),          # the one needed: said, with its line
+    ("Dimensions : Diameter,0,mm", ("--diameter-mm", "18"), True)])
+def test_unused_or_overridden_dimensions_in_the_metadata(bluehill2_log, tmp_path, row, options, ok):
+    """Bluehill templates leave dimensions they do not use at 0 or empty: those do not block
+    the log (exit 2 before, 'the width must be a positive finite number'); a needed one that is
+    0 is exit 2 naming its line unless an option gives it."""
+    path, _ = bluehill2_log
+    lines = path.read_text().splitlines()
+    at = next(i for i, ln in enumerate(lines) if ln.startswith("Dimensions"))
+    if "Diameter" in row:
+        at = next(i for i, ln in enumerate(lines) if "Diameter" in ln)
+        lines[at] = row
+    else:
+        lines.insert(at, row)
+    path.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "out"
+    r = _invoke("fit-ogden", path, *options, "--no-loop", "--bootstrap", "0", "-o", out)
+    if ok:
+        assert r.exit_code == 0, r.output
+        assert json.loads((out / "fit.json").read_text())["inputs"][0]["diameter_mm"] == 18.0
+    else:
+        assert r.exit_code == 2 and f"line {at + 1}: the diameter must be a positive" in r.output and not out.exists()
+
+
 def test_stress_tables_one_mode_per_table(tmp_path):
     paths = []
     for tag, mode in (("UT", "uniaxial"), ("ET", "equibiaxial"), ("PS", "pure-shear")):

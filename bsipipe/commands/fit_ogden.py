@@ -95,6 +95,14 @@ def _geometry(name: str, cfg: FitConfig, explicit: set, logfile) -> tuple[dict, 
             out[key] = float(logfile.geometry["thickness_mm"])
             source[key] = "log metadata: Thickness (a cylinder's height in Bluehill's compression templates)"
     missing = [k for k in ("diameter_mm", "height_mm") if k not in out]
+    bad = getattr(logfile, "geometry_invalid", {})
+    for k in missing:
+        # the dimension the log's metadata states wrongly (an empty or zero Diameter), and no
+        # option gives it: said with the line, not as missing
+        for key in ((k, "thickness_mm") if k == "height_mm" else (k,)):
+            if key in bad:
+                why, line = bad[key]
+                raise InputError(f"{why}: give --{k.replace('_', '-')} (or {k} in --config)", path=name, line=line)
     if missing:
         opts = " and ".join(f"--{k.replace('_', '-')}" for k in missing)
         raise InputError(f"specimen {' and '.join(missing)} missing: give {opts}, set "

@@ -91,6 +91,10 @@ class MachineLog:
     geometry : dict str -> float
         ``diameter_mm``, ``height_mm``, ``length_mm``, ``width_mm``, ``thickness_mm`` where
         the metadata states them with a length unit.
+    geometry_invalid : dict str -> (str, int)
+        The same keys where the metadata's value is empty, zero, negative or not finite (a
+        template's unused dimensions are often left at 0): the reason and the line, raised
+        only by a caller that needs that dimension and is given it no other way.
     units : dict str -> str
         Column name (without unit) -> unit as written, ``''`` for unitless columns.
     compression_sign : int
@@ -121,6 +125,7 @@ class MachineLog:
     extra: dict[str, np.ndarray] = field(default_factory=dict)
     data_lines: np.ndarray | None = None
     dialect: dict[str, str] = field(default_factory=dict)
+    geometry_invalid: dict[str, tuple[str, int]] = field(default_factory=dict)
 
     def __post_init__(self):
         if self.displacement_sign == 0:
@@ -343,7 +348,7 @@ def read_machine_log(path: str | os.PathLike) -> MachineLog:
         if roles.get("segment") == j and np.all(np.isfinite(col)) and np.all(col == np.round(col)):
             segment = col.astype(np.int64)
 
-    geometry = _geometry(geometry_rows, decimal, path)
+    geometry, geometry_invalid = _geometry(geometry_rows, decimal, path)
     load_sign, disp_sign, sign_from = _compression_signs(
         values["extension"], values["load"], normalise_name(names[roles["load"]]),
         normalise_name(names[roles["extension"]]))
@@ -358,7 +363,7 @@ def read_machine_log(path: str | os.PathLike) -> MachineLog:
                     "sign_from": sign_from})
     return MachineLog(path=path, layout=layout, time_s=t, extension_mm=values["extension"],
                       load_n=values["load"], segment=segment, metadata=metadata,
-                      geometry=geometry, units=units, compression_sign=load_sign,
+                      geometry=geometry, geometry_invalid=geometry_invalid, units=units, compression_sign=load_sign,
                       displacement_sign=disp_sign, extra=extra, data_lines=line_no,
                       dialect=dialect)
 
@@ -532,12 +537,18 @@ def _read_preamble(lines: list[str], delim):
     return metadata, geometry_rows, raw_marker
 
 
-def _geometry(rows, decimal, path) -> dict[str, float]:
-    """``{what}_mm`` from the metadata rows that give a length with a unit."""
+def _geometry(rows, decimal, path) -> tuple[dict[str, float], dict[str, tuple[str, int]]]:
+    """``{what}_mm`` from the metadata rows that give a length with a unit, and the rows whose
+    value is empty or not a positive finite number (``key -> (reason, line)``: a template's
+    unused dimensions, left at 0; an error only where a caller needs that dimension)."""
     out: dict[str, float] = {}
+    invalid: dict[str, tuple[str, int]] = {}
     for what, value, unit, line in rows:
         key = f"{what}_mm"
         if key in out:
+            continue
+        if not str(value).strip():
+            invalid.setdefault(key, (f"the {what} is empty", line))
             continue
         try:
             factor = unit_factor(unit, "length")
@@ -551,10 +562,11 @@ def _geometry(rows, decimal, path) -> dict[str, float]:
             raise InputError(f"text {value!r} where the {what} should be a number", path=path,
                              line=line) from None
         if not np.isfinite(v) or v <= 0:
-            raise InputError(f"the {what} must be a positive finite number, not {value!r}",
-                             path=path, line=line)
+            invalid.setdefault(key, (f"the {what} must be a positive finite number, not {value!r}", line))
+            continue
         out[key] = v * factor
-    return out
+        invalid.pop(key, None)
+    return out, invalid
 
 
 def _compression_signs(extension, load, load_name, extension_name) -> tuple[int, int, str]:
