@@ -200,6 +200,13 @@ def _set_line(k: int, text: str):
     return edit
 
 
+def _edits(*edits):
+    def edit(lines):
+        for e in edits:
+            e(lines)
+    return edit
+
+
 FIT = ["fit-ogden", "--diameter-mm", "18", "--height-mm", "12"]
 
 
@@ -343,12 +350,16 @@ CASES: list[Case] = [
     _c("log-geometry-unit", "fit-ogden", "diameter in cubits", _fit_log("bad_geometry_unit.csv", 1)),
     _c("log-no-contact", "fit-ogden", "force never rises (no contact)",
        lambda b, d: ([*FIT, p := _good_log_edit(d, "flat.csv", _no_contact)], p, None), expect=1, sub=True),
+    # the sample log states its dimensions twice (Dimensions rows and Results Table 1): a
+    # dimension is bad input where every statement of it is invalid (a valid one is taken)
     _c("log-zero-diameter", "fit-ogden", "metadata diameter 0 mm",
-       lambda b, d: (["fit-ogden", p := _good_log_edit(d, "d0.csv", _set_line(
-           3, '"Dimensions : Diameter","0.0000","mm"'))], p, "line 3")),
+       lambda b, d: (["fit-ogden", p := _good_log_edit(d, "d0.csv", _edits(
+           _set_line(3, '"Dimensions : Diameter","0.0000","mm"'),
+           _set_line(11, '"sheep brain sheep_s3_100mm_min","0.0000","12.2000"')))], p, "line 3")),
     _c("log-negative-height", "fit-ogden", "metadata height -12.2 mm",
-       lambda b, d: (["fit-ogden", p := _good_log_edit(d, "hneg.csv", _set_line(
-           4, '"Dimensions : Height","-12.2000","mm"'))], p, "line 4")),
+       lambda b, d: (["fit-ogden", p := _good_log_edit(d, "hneg.csv", _edits(
+           _set_line(4, '"Dimensions : Height","-12.2000","mm"'),
+           _set_line(11, '"sheep brain sheep_s3_100mm_min","18.3000",""')))], p, "line 4")),
     _c("option-negative-height", "fit-ogden", "--height-mm -5 (no file involved: the option is named)",
        lambda b, d: (["fit-ogden", GOOD_LOG, "--height-mm", "-5"], "--height-mm", None)),
     _c("log-missing-file", "fit-ogden", "log file does not exist",
