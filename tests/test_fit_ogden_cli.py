@@ -143,6 +143,23 @@ def test_unused_or_overridden_dimensions_in_the_metadata(bluehill2_log, tmp_path
         assert r.exit_code == 2 and f"line {at + 1}: the diameter must be a positive" in r.output and not out.exists()
 
 
+@pytest.mark.parametrize("options, says", [
+    (("--contact-mm", "100"), "leaves 0 samples loaded"),
+    (("--contact-mm", "-100"), "a compression cannot exceed the height"),
+    (("--height-mm", "3"), "times the specimen's height (3 mm"),
+    (("--max-strain", "0.0001"), "max_strain 0.0001 keeps 0 loaded samples")])
+def test_contact_or_height_the_record_cannot_have(bluehill2_log, tmp_path, options, says):
+    """A contact past the record's travel, a travel past the contact longer than the height,
+    or a max_strain that keeps nothing are exit 2 naming the log, with no result: they had
+    fitted to the parameters' bounds (mu 0.01 Pa, alpha -24) and written material cards
+    with exit 0."""
+    path, _ = bluehill2_log
+    out = tmp_path / "out"
+    r = _invoke("fit-ogden", path, *options, "--no-loop", "--bootstrap", "0", "-o", out)
+    assert r.exit_code == 2 and str(path) in r.output and says in r.output, r.output
+    assert not out.exists()
+
+
 def test_stress_tables_one_mode_per_table(tmp_path):
     paths = []
     for tag, mode in (("UT", "uniaxial"), ("ET", "equibiaxial"), ("PS", "pure-shear")):

@@ -111,6 +111,37 @@ def _geometry(name: str, cfg: FitConfig, explicit: set, logfile) -> tuple[dict, 
     return out, source
 
 
+#: Least number of samples past the contact (and within max_strain) a log must hold to be fitted.
+MIN_LOADED_SAMPLES = 10
+
+
+def _check_travel(path, disp, contact_mm: float, geo: dict, given: bool, geo_source: dict,
+                  max_strain: float | None) -> None:
+    """The contact and the specimen's height against the record: a contact past the record's
+    travel leaves nothing loaded to fit; a travel past the contact as long as the height
+    (nominal strain 1 or more) cannot be a compression of this specimen -- a contact or a
+    height that is wrong, not a material (such fits had run to the parameters' bounds, mu
+    0.01 Pa, and written material cards with exit 0)."""
+    where = "--contact-mm (contact_mm)" if given else "the detected contact"
+    h = float(geo["height_mm"])
+    loaded = np.count_nonzero(disp > contact_mm)
+    if loaded < MIN_LOADED_SAMPLES:
+        raise InputError(f"{where} at {contact_mm:.4g} mm leaves {loaded} samples loaded (the record's travel ends at "
+                         f"{float(np.max(disp)):.4g} mm past its first sample; at least {MIN_LOADED_SAMPLES} are "
+                         "needed)", path=path)
+    strain = (float(np.max(disp)) - contact_mm) / h
+    if strain >= 1.0:
+        raise InputError(f"the travel past {where} ({float(np.max(disp)) - contact_mm:.4g} mm) is "
+                         f"{strain:.3g} times the specimen's height ({h:.4g} mm, {geo_source.get('height_mm', '')}): "
+                         "a compression cannot exceed the height; check the contact and the height", path=path)
+    if max_strain is not None:
+        within = np.count_nonzero((disp > contact_mm) & (disp - contact_mm <= max_strain * h))
+        if within < MIN_LOADED_SAMPLES:
+            raise InputError(f"max_strain {max_strain:g} keeps {within} loaded samples (at least "
+                             f"{MIN_LOADED_SAMPLES} are needed: {max_strain * h:.3g} mm of travel past the contact)",
+                             path=path)
+
+
 def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig, explicit: set):
     from ..io.machine_log import read_machine_log
     from ..mechanics.contact import ContactNotInRecord, detect_contact, loading_ramps
@@ -167,6 +198,7 @@ def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig, explicit: set):
                 baseline = {"level_n": 0.0,
                             "source": "assumed 0 N (the load cell zeroed unloaded): the record has "
                                       f"{int(before.sum())} samples before the given contact, too few to measure it"}
+        _check_travel(p, disp, contact_mm, geo, given is not None, geo_source, cfg.max_strain)
         speed = _loading_speed(time_s, disp, start)
         logs.append(LogData(name, time_s, disp, force, geo["diameter_mm"], geo["height_mm"],
                             contact_mm, speed, sd, noise))
