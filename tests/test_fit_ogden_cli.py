@@ -160,6 +160,18 @@ def test_contact_or_height_the_record_cannot_have(bluehill2_log, tmp_path, optio
     assert not out.exists()
 
 
+def test_the_same_record_twice_is_refused(bluehill2_log, tmp_path):
+    """One log given twice (or a byte-for-byte copy) had been fitted as two independent tests,
+    narrowing mu's interval from [718.3, 724.3] to [719.2, 723.4] Pa: exit 2 naming both."""
+    path, _ = bluehill2_log
+    copy = tmp_path / "copy.csv"
+    copy.write_bytes(path.read_bytes())
+    for second in (path, copy):
+        r = _invoke("fit-ogden", path, second, "--no-loop", "--bootstrap", "0", "-o", tmp_path / "out")
+        assert r.exit_code == 2 and f"{second}: the same record as {path}" in r.output, r.output
+        assert not (tmp_path / "out").exists()
+
+
 def test_stress_tables_one_mode_per_table(tmp_path):
     paths = []
     for tag, mode in (("UT", "uniaxial"), ("ET", "equibiaxial"), ("PS", "pure-shear")):

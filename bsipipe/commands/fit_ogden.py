@@ -115,6 +115,22 @@ def _geometry(name: str, cfg: FitConfig, explicit: set, logfile) -> tuple[dict, 
 MIN_LOADED_SAMPLES = 10
 
 
+def _check_distinct(paths: Sequence[str]) -> None:
+    """The same record given twice (the same path, or a copy: identical bytes) would be fitted
+    as two independent logs, its weight doubled and the intervals narrowed: refused, naming both."""
+    import hashlib
+    seen: dict[str, str] = {}
+    for p in paths:
+        try:
+            digest = hashlib.sha256(Path(p).read_bytes()).hexdigest()
+        except OSError:
+            continue                      # the reader names a missing or unreadable file
+        if digest in seen:
+            raise InputError(f"the same record as {seen[digest]} (identical content): each log is one independent "
+                             "test; give it once", path=p)
+        seen[digest] = p
+
+
 def _check_travel(path, disp, contact_mm: float, geo: dict, given: bool, geo_source: dict,
                   max_strain: float | None) -> None:
     """The contact and the specimen's height against the record: a contact past the record's
@@ -421,6 +437,7 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
     paths = [str(p) for p in inputs]
     if not paths:
         raise InputError("no input file given (LOG ... or TABLE.csv --stress-stretch)")
+    _check_distinct(paths)
     if isinstance(contact_mm, (list, tuple)):
         contact_mm = [float(c) for c in contact_mm] or None         # click's repeated option: () is "not given"
     cfg, explicit = _merge_config(config, {"diameter_mm": diameter_mm, "height_mm": height_mm, "model": model,
