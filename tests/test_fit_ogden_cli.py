@@ -172,6 +172,26 @@ def test_the_same_record_twice_is_refused(bluehill2_log, tmp_path):
         assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("compliance, warned", [(0.4, False), (5.0, True)])
+def test_a_compliance_no_frame_has_is_warned_about(tmp_path, compliance, warned):
+    """machine-compliance taken by the loop is warned about (implausible-compliance) where the
+    frame would deflect by more than a fifth of the travel past the contact at the peak force:
+    0.4 mm/N deflects ~0.1 mm of 3.6 mm here (the loop's own test twin), 5 mm/N ~1.3 mm.  The
+    real Bluehill export had been given 0.108 mm/N, 5.7 mm of its 10 mm, without a word."""
+    frame, _ = synth_compression_log(compliance_mm_per_n=compliance, seed=34)
+    path = write_bluehill2(frame, tmp_path / "log.csv", label="S4", geometry={"diameter_mm": 18.0, "height_mm": 12.0})
+    out = tmp_path / "out"
+    r = _invoke("fit-ogden", path, "--bootstrap", "0", "-o", out)
+    assert r.exit_code == 0, r.output
+    d = json.loads((out / "fit.json").read_text())
+    assert "machine-compliance" in [st["effect"] for st in d["loop"]["steps"]]
+    assert abs(d["params"]["compliance_mm_per_n"] / compliance - 1) < 0.1
+    w = [x for x in d["warnings"] if x["code"] == "implausible-compliance"]
+    assert bool(w) == warned
+    if warned:
+        assert 0.2 < w[0]["deflection_mm"] / w[0]["travel_mm"] < 0.6
+
+
 def test_stress_tables_one_mode_per_table(tmp_path):
     paths = []
     for tag, mode in (("UT", "uniaxial"), ("ET", "equibiaxial"), ("PS", "pure-shear")):

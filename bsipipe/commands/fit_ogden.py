@@ -345,6 +345,39 @@ def _cards(result) -> dict[str, str]:
 BASELINE_WARN_FRACTION = 0.01
 
 
+#: The largest share of a log's travel past the contact that a fitted machine compliance may
+#: take as the frame's deflection at the peak force before it is warned about.
+COMPLIANCE_MAX_SHARE = 0.2
+
+
+def _compliance_implausible(c_mm_per_n: float, data) -> list[dict]:
+    """An ``implausible-compliance`` warning where the fitted ``machine-compliance`` makes the
+    frame deflect, at a log's peak force, by more than :data:`COMPLIANCE_MAX_SHARE` of its
+    travel past the contact: no testing frame is that soft next to its specimen, so the
+    residual the effect took is another one's (a record that starts loaded, a contact placed
+    wrong, a specimen that is no hyperelastic solid).  The real Bluehill export: 0.108 mm/N,
+    5.7 mm of 10 mm at 53 N, a modulus of 4.1 MPa for 53 kPa."""
+    from ..quality import warning
+    out = []
+    c = float(c_mm_per_n)
+    for lg in data:
+        loaded = lg.displacement_mm > lg.contact_mm
+        if not loaded.any() or c <= 0:
+            continue
+        travel = float(np.max(lg.displacement_mm[loaded]) - lg.contact_mm)
+        deflection = c * float(np.max(lg.force_n[loaded]))
+        if travel > 0 and deflection > COMPLIANCE_MAX_SHARE * travel:
+            out.append(warning(
+                "implausible-compliance",
+                f"fit-ogden: {lg.name}: the fitted machine compliance {c:.3g} mm/N deflects the frame by "
+                f"{deflection:.3g} mm at the peak force, {100 * deflection / travel:.0f} % of the {travel:.3g} mm "
+                "travel past the contact: no testing frame is that soft beside its specimen; the residual it took "
+                "is likely another effect's (a record that starts loaded, the contact placed wrong, a specimen that "
+                "is no hyperelastic solid): check the contact, or fit with --no-loop and read the residual",
+                log, log_name=lg.name, compliance_mm_per_n=c, deflection_mm=deflection, travel_mm=travel))
+    return out
+
+
 def _baseline_ignored(input_info: list[dict], data) -> list[dict]:
     """``force-baseline-ignored`` warnings: a log whose samples before the contact measure an
     unloaded force away from zero (a load cell not tared, an offset) fitted by a model that
@@ -532,6 +565,8 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
     result["warnings"] = _fit_quality(final)
     if kind == "logs" and not spec.baseline_drift:
         result["warnings"] += _baseline_ignored(input_info, data)
+    if kind == "logs" and spec.compliance:
+        result["warnings"] += _compliance_implausible(final.values.get("compliance_mm_per_n", 0.0), data)
     prov_inputs = paths + ([str(width_csv)] if width_csv is not None else []) + ([str(config)] if config else [])
     result["provenance"] = provenance(cfg, prov_inputs, command="fit-ogden")
 
