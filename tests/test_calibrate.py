@@ -212,6 +212,20 @@ def test_stereo_pairs_that_were_not_taken_together(tmp_path, case):
         assert "stereo-unpaired-frames" in codes and "05.jpg" in codes["stereo-unpaired-frames"]["message"]
 
 
+def test_squares_counted_for_corners_names_the_board(tmp_path):
+    """--grid 10x7 for the 9x6-corner board (its squares counted): no image shows a 10x7
+    board; the one it does show is named and the exit is 2 (bad input), not 1 with 'no 10x7
+    chessboard found'."""
+    src = tmp_path / "img"
+    src.mkdir()
+    for n in ("01", "03", "04"):
+        shutil.copy(STEREO / f"left{n}.jpg", src)
+    r = CliRunner().invoke(cli, ["calibrate", "--images", str(src), "--pattern", "chessboard", "--grid", "10x7",
+                                 "--spacing-mm", "25", "-o", str(tmp_path / "out")])
+    assert r.exit_code == 2 and "has 9x6 inner corners: is it --grid 9x6?" in r.output, r.output
+    assert str(src / "left01.jpg") in r.output and not (tmp_path / "out").exists()
+
+
 def test_identical_images_are_one_view(tmp_path):
     """Copies of one image (byte for byte, or the same pixels in another format) are one view:
     five copies of left13 had been counted as six views (18 for 13 images), moving k3 from

@@ -260,6 +260,35 @@ def _check_sizes(sizes: dict) -> tuple[int, int]:
     return ref
 
 
+def _chessboard_named(name: str, cfg: CalibrateConfig, sizes: dict, rejected: dict, n_probe: int = 3) -> None:
+    """No image of a camera shows a ``--grid`` chessboard: the board the first few show, found
+    whatever its size (:func:`~bsipipe.imaging.gridfind.chessboard_size`, about a second an
+    image), is named in an InputError (exit 2): ``--grid 10x7`` for a board of 10 x 7 squares,
+    9 x 6 inner corners, had been exit 1, 'no 10x7 chessboard found'."""
+    from ..imaging.gridfind import chessboard_size, parse_grid
+    from ..io.images import read_image
+    grid = parse_grid(cfg.grid)
+    for key in [k for k in rejected if k in sizes][:n_probe]:
+        _, path, _, _ = sizes[key]
+        try:
+            img = read_image(path)          # a still image (a stack or video: its first frame)
+        except InputError:
+            continue
+        # OpenCV finds a board at least as large as the size it is asked for: asked for the
+        # squares (one more than the corners each way) it finds nothing; the corners of the
+        # squares counted, then a small board, find the whole board
+        found = None
+        for probe in ((grid[0] - 1, grid[1] - 1), (3, 3)):
+            if min(probe) >= 3:
+                found = chessboard_size(img, probe)
+                if found is not None:
+                    break
+        if found is not None and tuple(found) != tuple(grid):
+            raise InputError(f"camera {name}: no image shows a {cfg.grid} chessboard; this one's has {found[0]}x"
+                             f"{found[1]} inner corners: is it --grid {found[0]}x{found[1]}? (a chessboard's --grid "
+                             "counts inner corners, COLSxROWS: one less than its squares)", path=path)
+
+
 def _grid_mismatch_error(name: str, cfg: CalibrateConfig, mismatches: dict, path: str) -> InputError:
     """Too few views, most of them rejected because ``--grid`` does not fit the board (the
     others not found at all): exit 2 with the board's size most views show."""
@@ -464,6 +493,8 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
         if sizes:
             size[0] = _check_sizes(sizes)
         if len(views) < 3:
+            if not views and not mismatches and cfg.pattern == "chessboard":
+                _chessboard_named(name, cfg, sizes, rejected)
             if mismatches and 2 * len(mismatches) >= len(rejected):  # --grid does not fit the board
                 raise _grid_mismatch_error(name, cfg, mismatches, sources[0][1])
             why = f" ({len(rejected)} failed: {_failures(rejected)})" if rejected else ""
