@@ -45,6 +45,25 @@ def right_views():
     return _chessboard_views("right")
 
 
+def _calibrate_images(folder: Path, images: dict, *options: str):
+    """Copy the real chessboard ``images`` (name in ``folder`` -> file of the pair) into
+    ``folder`` and calibrate them as one camera (``--images``, chessboard 9x6, 25 mm unless
+    ``options`` say otherwise); returns the click result and the output folder."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, src in images.items():
+        shutil.copy(src, folder / name)
+    out = folder.parent / "out"
+    args = {"--pattern": "chessboard", "--grid": "9x6", "--spacing-mm": "25"}
+    opts = list(options)
+    for k in list(args):
+        if k in opts:
+            del args[k]
+    r = CliRunner().invoke(cli, ["calibrate", "--images", str(folder), *[x for kv in args.items() for x in kv],
+                                 *opts, "-o", str(out)])
+    print(r.output)
+    return r, out
+
+
 def test_real_chessboard_left_matches_opencv(left_views):
     """13 left views, 25 mm: RMS 0.408 px (default 5-coefficient model, all views) and the
     CALIB_FIX_ASPECT_RATIO intrinsics of left_intrinsics.yml (flags: 2, aspectRatio 1).
@@ -217,30 +236,21 @@ def test_squares_counted_for_corners_names_the_board(tmp_path):
     board; the one it does show is named and the exit is 2 (bad input), not 1 with 'no 10x7
     chessboard found'."""
     src = tmp_path / "img"
-    src.mkdir()
-    for n in ("01", "03", "04"):
-        shutil.copy(STEREO / f"left{n}.jpg", src)
-    r = CliRunner().invoke(cli, ["calibrate", "--images", str(src), "--pattern", "chessboard", "--grid", "10x7",
-                                 "--spacing-mm", "25", "-o", str(tmp_path / "out")])
+    r, out = _calibrate_images(src, {f"left{n}.jpg": STEREO / f"left{n}.jpg" for n in ("01", "03", "04")},
+                               "--grid", "10x7")
     assert r.exit_code == 2 and "has 9x6 inner corners: is it --grid 9x6?" in r.output, r.output
-    assert str(src / "left01.jpg") in r.output and not (tmp_path / "out").exists()
+    assert str(src / "left01.jpg") in r.output and not out.exists()
 
 
 def test_identical_images_are_one_view(tmp_path):
     """Copies of one image (byte for byte, or the same pixels in another format) are one view:
     five copies of left13 had been counted as six views (18 for 13 images), moving k3 from
     0.25 to 0.63 and shrinking the parameters' spread, with no warning."""
-    src = tmp_path / "img"
-    src.mkdir()
-    for f in sorted(STEREO.glob("left*.jpg")):
-        shutil.copy(f, src / f.name)
-    for k in range(3):
-        shutil.copy(STEREO / "left13.jpg", src / f"left13_copy{k}.jpg")
-    cv2.imwrite(str(src / "left13_again.png"), cv2.imread(str(STEREO / "left13.jpg"), cv2.IMREAD_UNCHANGED))
-    out = tmp_path / "out"
-    r = CliRunner().invoke(cli, ["calibrate", "--images", str(src), "--pattern", "chessboard", "--grid", "9x6",
-                                 "--spacing-mm", "25", "--view", "left", "--no-loop", "-o", str(out)])
-    print(r.output)
+    images = {f.name: f for f in sorted(STEREO.glob("left*.jpg"))}
+    images.update({f"left13_copy{k}.jpg": STEREO / "left13.jpg" for k in range(3)})
+    (tmp_path / "img").mkdir()
+    cv2.imwrite(str(tmp_path / "img" / "left13_again.png"), cv2.imread(str(STEREO / "left13.jpg"), cv2.IMREAD_UNCHANGED))
+    r, out = _calibrate_images(tmp_path / "img", images, "--view", "left", "--no-loop")
     assert r.exit_code == 0, r.output
     d = json.loads((out / "calibration.json").read_text())
     v = d["views"]["left"]
@@ -272,14 +282,8 @@ def test_calibrate_command_few_views(tmp_path, names):
     """3 views (the fewest a camera needs: none can be held out) and 4 (cx alone weakly
     pinned) calibrate: they had ended in internal errors (a held-out refit of 2 views; a
     principal-point shift from one coordinate)."""
-    src = tmp_path / "img"
-    src.mkdir()
-    for n in names:
-        shutil.copy(STEREO / f"left{n}.jpg", src)
-    out = tmp_path / "out"
-    r = CliRunner().invoke(cli, ["calibrate", "--images", str(src), "--pattern", "chessboard", "--grid", "9x6",
-                                 "--spacing-mm", "25", "--view", "left", "-o", str(out)])
-    print(r.output)
+    r, out = _calibrate_images(tmp_path / "img", {f"left{n}.jpg": STEREO / f"left{n}.jpg" for n in names},
+                               "--view", "left")
     assert r.exit_code == 0, r.output
     d = json.loads((out / "calibration.json").read_text())
     v = d["views"]["left"]

@@ -123,15 +123,19 @@ def test_twin_undeclared_s_distortion_is_found_by_the_loop():
 
 # --- the twin's own default calibration views, calibrated as a user would ---------------------
 
+def _synth(root, config_yaml: str) -> None:
+    """``bsipipe synth`` of ``config_yaml`` into ``root/tw``."""
+    (root / "synth.yaml").write_text(config_yaml)
+    r = CliRunner().invoke(cli, ["synth", str(root / "synth.yaml"), "-o", str(root / "tw")])
+    assert r.exit_code == 0, r.output
+
+
 @pytest.fixture(scope="module")
 def default_plate(tmp_path_factory):
     """``bsipipe synth`` with every calibration default (plate, noise, distortion) but few
     views, then ``bsipipe calibrate DIR/calibration.yaml``, the config synth writes."""
     root = tmp_path_factory.mktemp("twin_default_plate")
-    cfg = root / "synth.yaml"
-    cfg.write_text("calibration: {views: 4, stereo_views: 3}\nsequence: {enabled: false}\n")
-    r = CliRunner().invoke(cli, ["synth", str(cfg), "-o", str(root / "tw")])
-    assert r.exit_code == 0, r.output
+    _synth(root, "calibration: {views: 4, stereo_views: 3}\nsequence: {enabled: false}\n")
     r = CliRunner().invoke(cli, ["calibrate", str(root / "tw" / "calibration.yaml"), "-o", str(root / "cal")])
     print(r.output)
     assert r.exit_code == 0, r.output
@@ -186,12 +190,9 @@ def test_two_views_that_hide_each_other_are_both_left_out(tmp_path):
     to hold the model, so neither looked like an outlier (-0.6 %) and both were kept: fx 1734
     for 1670, cy 293 for 252, with exit 0 and no warning.  Judged together they are both left
     out: fx, fy back within 0.5 %, the principal point within 2 % of the image."""
-    cfg = tmp_path / "synth.yaml"
-    cfg.write_text("seed: 1\nimage: {size_px: 512, supersample: 2}\n"
-                   "calibration: {views: 8, stereo_views: 0, pattern: circles, grid: [9, 7], spacing_mm: 10.0, "
-                   "bead_diameter_mm: 2.0}\nsequence: {enabled: false}\n")
-    r = CliRunner().invoke(cli, ["synth", str(cfg), "-o", str(tmp_path / "tw")])
-    assert r.exit_code == 0, r.output
+    _synth(tmp_path, "seed: 1\nimage: {size_px: 512, supersample: 2}\ncalibration: {views: 8, stereo_views: 0, "
+                     "pattern: circles, grid: [9, 7], spacing_mm: 10.0, bead_diameter_mm: 2.0}\n"
+                     "sequence: {enabled: false}\n")
     src = sorted((tmp_path / "tw" / "calibration" / "cam1").glob("*.png"))
     wire = tmp_path / "wire"
     wire.mkdir()
