@@ -119,6 +119,24 @@ def test_label_swap_is_named_and_undone(tmp_path, pair):
     assert res["reference_checks"][pair[0]]["ct_label"] == pair[1]
 
 
+@pytest.mark.parametrize("labels", [("R1", "R2", "R4"), ("R1", "R4", "R3"), ("R2", "R3", "R4")])
+def test_three_labels_in_a_cycle_are_no_pair_swap(tmp_path, labels):
+    """Three CT labels in a cycle (a -> b -> c -> a): no exchange of two labels makes the
+    references fit, and none is taken.  One had been, on the implanted markers alone, though
+    the references then fitted worse (the helper's sample-study case: FRE 13.61 -> 14.15 mm),
+    with label_swaps naming a wrong pair (R2 <-> R4, R1 <-> R3, R2 <-> R3 here); the large FRE
+    is warned about instead."""
+    a, b, c = labels
+
+    def cycle(ct):
+        ct[a], ct[b], ct[c] = ct[c].copy(), ct[a].copy(), ct[b].copy()
+    _trial(tmp_path, ct_edit=cycle)
+    r, res = _register(tmp_path)
+    assert r.exit_code == 0, r.output
+    assert "label-swap" not in [s["effect"] for s in res["loop"]["steps"]]
+    assert res["references"]["swapped"] == [] and "large-fre" in _codes(res)
+
+
 def test_moving_reference_still_wins_over_a_swap_that_does_not_explain_it():
     """A reference displaced by 2.7 mm at a square's corner, no implanted markers: exchanging it
     with the opposite corner fits far worse than leaving it out (F test), so it is not a swap."""

@@ -359,7 +359,19 @@ def registration_effects(data: RegistrationData) -> list[Effect]:
         new = [p for p in after.spec.swapped if p not in before.spec.swapped]
         if not new:
             return None
-        return _with_check(_swap_evidence(data, before.spec, new[0]), _check_evidence(data, before.fit, after.fit))
+        ev = _swap_evidence(data, before.spec, new[0])
+        rss0 = float(np.sum(np.asarray(before.fit.residuals) ** 2))
+        rss1 = float(np.sum(np.asarray(after.fit.residuals) ** 2))
+        if rss1 >= rss0:
+            # a true exchange makes the references consistent: their misfit falls by orders of
+            # magnitude.  One that leaves them fitting no better is no label swap (three labels
+            # in a cycle: exchanging two of them had been kept on the implanted markers alone,
+            # FRE 13.61 -> 14.15 mm), and nothing outside it is counted for it
+            ev.update(delta_bic=0.0, rss_before_mm2=rss0, rss_after_mm2=rss1,
+                      note=ev["note"] + f"; not counted: the references fit no better after the exchange "
+                                        f"(RSS {rss0:.4g} -> {rss1:.4g} mm^2)")
+            return ev
+        return _with_check(ev, _check_evidence(data, before.fit, after.fit))
 
     return [
         Effect("scale",
