@@ -154,6 +154,15 @@ def test_marker_table_and_mesh_must_share_the_ct_frame(tmp_path, table_cs, ok):
         assert ("RAS, those of" in r.output and str(mesh) in r.output) if table_cs == "RAS" else "LPS and RAS" in r.output
 
 
+def test_an_unknown_marker_is_named(tmp_path):
+    """--marker M9 that the table does not hold is exit 2 naming it (it had been 'no frame has
+    a finite displacement', as if the data were at fault)."""
+    mesh, fe, markers = _setup(tmp_path)
+    r = _invoke("compare", "--fe-displacements", fe, "--mesh", mesh, "--markers", markers, "--marker", "M9",
+                "-o", tmp_path / "cmp")
+    assert r.exit_code == 2 and "marker(s) M9 not in the marker table" in r.output and str(markers) in r.output
+
+
 def test_unmatched_fe_time_and_unknown_clock_are_warned(tmp_path):
     """A frame between FE results (FE 2.5 s, results at 2 and 3 s, frames 0.5 s apart) is compared with the
     nearest and warned about; without any clock a non-peak frame cannot be matched: the

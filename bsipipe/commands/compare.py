@@ -96,6 +96,9 @@ def run(fe_displacements: str | os.PathLike, mesh: str | os.PathLike, markers: s
         results = [last]
 
     frames = sorted(table["frame"].unique())
+    unknown = [m for m in dict.fromkeys(cfg.markers) if m not in set(table["marker"].astype(str))]
+    if unknown:
+        raise InputError(f"marker(s) {', '.join(unknown)} not in the marker table", path=markers)
     try:
         peak = peak_frame_info(table, cfg.markers or None)
     except ValueError as e:
