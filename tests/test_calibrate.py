@@ -242,6 +242,25 @@ def test_squares_counted_for_corners_names_the_board(tmp_path):
     assert str(src / "left01.jpg") in r.output and not out.exists()
 
 
+@pytest.mark.parametrize("scale", [1.0, 0.5])
+def test_a_subpix_window_wider_than_the_corners_is_warned_about(tmp_path, scale):
+    """The left views at half size (corners 13-16 px apart at the closest in a view): the
+    default cornerSubPix half window of 11 px holds neighbouring corners (RMS 1.36 px, fx 276,
+    a view rejected with a hint at --grid) and a subpix-window-large warning names
+    --subpix-window-px auto; at full size (22-30 px) it is not warned about."""
+    folder = tmp_path / "img"
+    folder.mkdir()
+    for f in sorted(STEREO.glob("left*.jpg")):
+        img = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+        cv2.imwrite(str(folder / f"{f.stem}.png"), cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA))
+    r, out = _calibrate_images(folder, {}, "--no-loop")
+    assert r.exit_code == 0, r.output
+    w = [x for x in json.loads((out / "calibration.json").read_text())["warnings"] if x["code"] == "subpix-window-large"]
+    assert bool(w) == (scale < 1)
+    if w:
+        assert "--subpix-window-px auto" in w[0]["message"] and w[0]["half_window_px"] == 11
+
+
 def test_identical_images_are_one_view(tmp_path):
     """Copies of one image (byte for byte, or the same pixels in another format) are one view:
     five copies of left13 had been counted as six views (18 for 13 images), moving k3 from

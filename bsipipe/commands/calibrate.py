@@ -165,7 +165,7 @@ def build_config(config_path=None, *, images=None, pattern=None, grid=None, spac
 
 
 def _detect_source(path: str, cfg: CalibrateConfig, kind: str, size: list, views: dict, rejected: dict,
-                   frames: dict | None, sizes: dict, mismatches: dict, seen: dict):
+                   frames: dict | None, sizes: dict, mismatches: dict, seen: dict, spacings: dict):
     """Detect the target in every frame of one source; fill ``views`` / ``rejected`` / ``frames``,
     ``sizes`` (key -> ((w, h), file, frame index)) and ``mismatches`` (key -> the board size a
     view shows when ``--grid`` does not fit it, or None).  ``seen`` (digest of the pixels ->
@@ -215,6 +215,8 @@ def _detect_source(path: str, cfg: CalibrateConfig, kind: str, size: list, views
             log.info("calibrate: %s: %s", key, rejected[key])
             continue
         ambiguous |= det.ambiguous
+        if "corner_spacing_min_px" in det.info:
+            spacings[key] = (det.info["subpix_half_window_px"], det.info["corner_spacing_min_px"])
         v = ViewData(key, det.image_points, det.object_points, det.ids)
         if key not in rejected:
             views[key] = v
@@ -258,6 +260,27 @@ def _check_sizes(sizes: dict) -> tuple[int, int]:
     ref = odd_one([wh for wh, _, _, _ in sizes.values()], "size")
     odd_one([np.dtype(dt) for _, _, _, dt in sizes.values()], "depth")
     return ref
+
+
+def _subpix_window_warning(name: str, cfg: CalibrateConfig, spacings: dict):
+    """A ``subpix-window-large`` warning (or None) where a fixed ``cornerSubPix`` half window
+    reaches past half the corner spacing the views typically show (the median over views of
+    each one's least spacing): the window then holds neighbouring corners, which pull each
+    corner off.  OpenCV's left views (least spacing 22-30 px per view) keep the default 11;
+    the same views at half size (13-16 px) had calibrated with RMS 1.36 px and fx 276 without
+    a word (``--subpix-window-px auto``: 0.193 px, 269.8)."""
+    from ..quality import warning
+    if not spacings or cfg.subpix_window_px == "auto":
+        return None
+    half = max(h for h, _ in spacings.values())
+    typical = float(np.median([s for _, s in spacings.values()]))
+    if half <= 0.5 * typical:
+        return None
+    return warning("subpix-window-large",
+                   f"calibrate: {name}: the cornerSubPix half window ({half} px) reaches past half the corners' "
+                   f"spacing (typically {typical:.1f} px at the closest in a view): neighbouring corners fall in it "
+                   "and pull each corner off; give --subpix-window-px auto (just under half the spacing)",
+                   logger=log, view=name, half_window_px=half, corner_spacing_px=typical)
 
 
 def _chessboard_named(name: str, cfg: CalibrateConfig, sizes: dict, rejected: dict, n_probe: int = 3) -> None:
@@ -476,11 +499,16 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
         sizes: dict = {}
         mismatches: dict = {}
         seen: dict = {}
+        spacings: dict = {}     # chessboard view -> (cornerSubPix half window, least corner spacing), px
         for kind, path in sources:
             from ..io.images import list_image_files
             inputs.extend([path] if os.path.isfile(path) else [str(q) for q in list_image_files(path)])
             frames = stereo_frames.setdefault(name, {}) if kind == "stereo" else None
-            ambiguous_any |= _detect_source(path, cfg, kind, size, views, rejected, frames, sizes, mismatches, seen)
+            ambiguous_any |= _detect_source(path, cfg, kind, size, views, rejected, frames, sizes, mismatches, seen,
+                                            spacings)
+        warn = _subpix_window_warning(name, cfg, spacings)
+        if warn:
+            warnings.append(warn)
         same = {k: why for k, why in rejected.items() if why.startswith("the same image as")}
         if same:
             warnings.append(warning(

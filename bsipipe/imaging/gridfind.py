@@ -601,8 +601,11 @@ def find_chessboard(image: np.ndarray, grid: tuple[int, int], spacing_mm: float,
     obj = target_points("chessboard", grid, spacing_mm)
     ids = np.arange(len(pts))
     colrow = np.column_stack([ids % grid[0], ids // grid[0]])
+    info = {"method": method}
+    if method.endswith("cornerSubPix"):
+        info.update(subpix_half_window_px=half, corner_spacing_min_px=float(sp))
     return GridDetection(pts, obj, ids, colrow, complete=True,
-                         ambiguous=(grid[0] % 2 == grid[1] % 2), info={"method": method})
+                         ambiguous=(grid[0] % 2 == grid[1] % 2), info=info)
 
 
 def _sample_cells(img: np.ndarray, H: np.ndarray, cells: np.ndarray, half: float = 0.25) -> np.ndarray:
