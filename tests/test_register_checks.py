@@ -162,6 +162,20 @@ def test_reference_swapped_with_an_implanted_marker_warns_on_the_ct_check(tmp_pa
     assert "M2" in w["message"]
 
 
+def test_a_moved_reference_left_out_is_a_warning(tmp_path):
+    """A reference 3 mm from where the CT has it (knocked, or on the brain): the loop leaves it
+    out (moving-reference) and the warnings list says so (it had said nothing: the result was
+    only in references.moved)."""
+    def edit(ct):
+        ct["R2"] = ct["R2"] + np.array([3.0, 0.0, 0.0])
+    _trial(tmp_path, ct_edit=edit)
+    r, res = _register(tmp_path)
+    assert r.exit_code == 0, r.output
+    assert res["references"]["moved"] == ["R2"]
+    w = [x for x in res["warnings"] if x["code"] == "moving-reference"]
+    assert len(w) == 1 and w[0]["references"] == ["R2"] and "R2" in w[0]["message"]
+
+
 def test_coincident_ct_references_are_invalid_input(tmp_path):
     def edit(ct):
         for n in ("R2", "R3", "R4"):

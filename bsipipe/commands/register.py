@@ -350,8 +350,9 @@ def _fre_rms(fit) -> float:
 
 
 def _reference_effect_warnings(report, *, has_check: bool) -> list[dict]:
-    """``label-swap`` when the loop exchanged CT labels; ``ambiguous-reference-error`` when the
-    loop kept label-swap or moving-reference with the other within its tie margin."""
+    """``label-swap`` when the loop exchanged CT labels, ``moving-reference`` when it left a
+    reference out; ``ambiguous-reference-error`` when the loop kept label-swap or
+    moving-reference with the other within its tie margin."""
     from ..quality import warning
 
     out = []
@@ -363,6 +364,14 @@ def _reference_effect_warnings(report, *, has_check: bool) -> list[dict]:
                               f"relative to the X-ray markers (loop effect label-swap: FRE RMS "
                               f"{_fre_rms(step.before.fit):.4g} -> {_fre_rms(step.after.fit):.4g} mm); registered "
                               f"with the labels corrected: fix the CT file", log, pairs=[list(p) for p in new]))
+        if step.effect.name == "moving-reference":
+            new = [n for n in step.after.spec.moved if n not in step.before.spec.moved]
+            out.append(warning(
+                "moving-reference", f"register: reference(s) {', '.join(new)} moved relative to the others (on the "
+                                    f"brain rather than the skull, or knocked) and were left out of the transform "
+                                    f"(loop effect moving-reference: FRE RMS {_fre_rms(step.before.fit):.4g} -> "
+                                    f"{_fre_rms(step.after.fit):.4g} mm); their role in markers_ct.csv is "
+                                    "moved-reference", log, references=new))
         rival = {"label-swap": "moving-reference", "moving-reference": "label-swap"}.get(step.effect.name)
         runner = step.evidence.get("runner_up") or {}
         if rival is None or runner.get("effect") != rival:
