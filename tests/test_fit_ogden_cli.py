@@ -192,6 +192,20 @@ def test_a_compliance_no_frame_has_is_warned_about(tmp_path, compliance, warned)
         assert 0.2 < w[0]["deflection_mm"] / w[0]["travel_mm"] < 0.6
 
 
+def test_options_that_do_not_apply_are_refused(bluehill2_log, tmp_path):
+    """Config mode: equibiaxial for a machine log, and --diameter-mm with --stress-stretch,
+    had been ignored without a word (--mode and --prony were refused): exit 2, no result."""
+    path, _ = bluehill2_log
+    cfg = tmp_path / "fit.yaml"
+    cfg.write_text("mode: equibiaxial\n")
+    r = _invoke("fit-ogden", path, "--config", cfg, "-o", tmp_path / "a")
+    assert r.exit_code == 2 and "key 'mode'" in r.output and not (tmp_path / "a").exists()
+    table = tmp_path / "t.csv"
+    table.write_text("stretch,nominal_stress_pa\n1.0,0\n1.1,100\n1.2,190\n1.3,270\n1.4,340\n")
+    r = _invoke("fit-ogden", table, "--stress-stretch", "--diameter-mm", "18", "-o", tmp_path / "b")
+    assert r.exit_code == 2 and "--diameter-mm does not apply" in r.output and not (tmp_path / "b").exists()
+
+
 def test_stress_tables_one_mode_per_table(tmp_path):
     paths = []
     for tag, mode in (("UT", "uniaxial"), ("ET", "equibiaxial"), ("PS", "pure-shear")):

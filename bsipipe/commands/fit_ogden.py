@@ -479,16 +479,21 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
                                            "contact_mm": contact_mm})
     if stress_stretch:
         for opt, bad in (("--prony", cfg.prony), ("--boundary no-slip", cfg.boundary == "no-slip"),
-                         ("--width-csv", width_csv is not None), ("--contact-mm", cfg.contact_mm is not None)):
+                         ("--width-csv", width_csv is not None), ("--contact-mm", cfg.contact_mm is not None),
+                         ("--diameter-mm", diameter_mm is not None), ("--height-mm", height_mm is not None)):
             if bad:
-                raise InputError(f"{opt} does not apply to a stress-stretch table (it has no time or platens)",
-                                 path=paths[0])
+                raise InputError(f"{opt} does not apply to a stress-stretch table (it has no time, platens or "
+                                 "specimen size)", path=paths[0])
         data, input_info = _read_tables(paths, list(modes), cfg)
         kind = "tables"
         spec0 = ForceModelSpec(law=cfg.model)
     else:
         if modes:
             raise InputError("--mode applies to stress-stretch tables (--stress-stretch)", path=paths[0])
+        if "mode" in explicit and cfg.mode != "uniaxial":
+            # a testing machine's log is fitted as the unconfined compression it records
+            raise InputError(f"mode {cfg.mode!r} applies to stress-stretch tables; a machine log is fitted as "
+                             "uniaxial compression", path=config, key="mode")
         try:
             spec0 = ForceModelSpec(law=cfg.model, prony=cfg.prony, boundary=cfg.boundary)
         except ValueError as e:
