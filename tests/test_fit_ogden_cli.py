@@ -206,6 +206,23 @@ def test_options_that_do_not_apply_are_refused(bluehill2_log, tmp_path):
     assert r.exit_code == 2 and "--diameter-mm does not apply" in r.output and not (tmp_path / "b").exists()
 
 
+def test_loading_speed_leaves_a_pause_out(tmp_path):
+    """A 4 mm/min ramp paused for 30 s halfway (the crosshead still): the reported speed is
+    the ramp's, 0.0667 mm/s (a least-squares slope over the whole ramp had given 0.032)."""
+    frame, _ = synth_compression_log(seed=35)
+    k = len(frame) // 2
+    pause = frame.iloc[[k] * 300].copy()
+    pause["time_s"] = frame["time_s"].iloc[k] + 0.1 * np.arange(1, 301)
+    after = frame.iloc[k + 1:].copy()
+    after["time_s"] += 30.0
+    log = pd.concat([frame.iloc[:k + 1], pause, after], ignore_index=True)
+    path = write_bluehill2(log, tmp_path / "pause.csv", label="S5", geometry={"diameter_mm": 18.0, "height_mm": 12.0})
+    r = _invoke("fit-ogden", path, "--no-loop", "--bootstrap", "0", "-o", tmp_path / "out")
+    assert r.exit_code == 0, r.output
+    speed = json.loads((tmp_path / "out" / "fit.json").read_text())["inputs"][0]["speed_mm_s"]
+    assert abs(speed - 4.0 / 60.0) < 1e-3, speed
+
+
 def test_stress_tables_one_mode_per_table(tmp_path):
     paths = []
     for tag, mode in (("UT", "uniaxial"), ("ET", "equibiaxial"), ("PS", "pure-shear")):

@@ -68,14 +68,33 @@ def _given_contacts(cfg: FitOgdenConfig, paths: Sequence[str]) -> list[float | N
 
 
 def _loading_speed(time_s: np.ndarray, disp_mm: np.ndarray, start: int) -> float | None:
-    """Crosshead speed (mm/s) on the first loading ramp from ``start``: a least-squares slope."""
+    """Crosshead speed (mm/s) on the first loading ramp from ``start`` (up to the largest
+    displacement): its travel over its time, less the holds in it (runs of 10 or more steps
+    slower than a quarter of the 95th percentile step speed), so a pause within the ramp does
+    not count: a least-squares slope over a ramp-hold-ramp had halved a 4 mm/min ramp's speed."""
     stop = int(np.argmax(disp_mm)) + 1
     if stop - start < 3:
         start = 0
     t, d = time_s[start:stop], disp_mm[start:stop]
     if len(t) < 3 or np.ptp(t) <= 0:
         return None
-    return float(np.polyfit(t, d, 1)[0])
+    dt = np.diff(t)
+    ok = dt > 0
+    if ok.sum() < 2:
+        return None
+    dd = np.diff(d)[ok]
+    dt = dt[ok]
+    still = dd / dt <= 0.25 * np.percentile(dd / dt, 95)
+    # a hold is a run of 10 or more still steps (a quantised encoder's single still steps
+    # between counts are part of the ramp)
+    edges = np.flatnonzero(np.diff(np.r_[0, still.astype(np.int8), 0]))
+    hold = np.zeros(len(still), bool)
+    for a, b in zip(edges[::2], edges[1::2]):
+        if b - a >= 10:
+            hold[a:b] = True
+    if dt[~hold].sum() <= 0:
+        return float(np.polyfit(t, d, 1)[0])
+    return float(dd[~hold].sum() / dt[~hold].sum())
 
 
 def _geometry(name: str, cfg: FitConfig, explicit: set, logfile) -> tuple[dict, dict]:
