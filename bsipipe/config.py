@@ -69,9 +69,15 @@ def _format_validation_error(err: ValidationError) -> tuple[str, str]:
             msg = msg[len("Value error, "):]
         if "input" in e and not isinstance(e["input"], (dict, list)):
             msg += f" (got {e['input']!r})"
-    more = len(err.errors()) - 1
-    if more > 0:
-        msg += f"; and {more} more problem{'s' if more > 1 else ''}"
+    rest = err.errors()[1:]
+    if rest:
+        # the others by key, not just counted (a list given for a text key fails each of its
+        # alternative types: one key, several problems)
+        keys = list(dict.fromkeys(".".join(str(p) for p in r.get("loc", ())) or "?" for r in rest))
+        others = [k for k in keys if k != key]
+        msg += (f"; and {len(rest)} more problem{'s' if len(rest) > 1 else ''}"
+                + (f" (key{'s' if len(others) > 1 else ''} {', '.join(repr(k) for k in others)})" if others else
+                   " with this key"))
     return key, msg
 
 

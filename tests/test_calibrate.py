@@ -261,6 +261,24 @@ def test_a_subpix_window_wider_than_the_corners_is_warned_about(tmp_path, scale)
         assert "--subpix-window-px auto" in w[0]["message"] and w[0]["half_window_px"] == 11
 
 
+def test_config_grid_as_a_list_and_every_bad_key_named(tmp_path):
+    """A calibrate config's grid as [COLS, ROWS] (as synth's config writes it) is COLSxROWS (it
+    had been refused); a config with several bad keys names all of them, not 'and 2 more
+    problems'."""
+    src = tmp_path / "img"
+    src.mkdir()
+    for n in ("01", "03", "04"):
+        shutil.copy(STEREO / f"left{n}.jpg", src)
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(f"images: {src}\npattern: chessboard\ngrid: [9, 6]\nspacing_mm: 25\nloop: false\n")
+    r = CliRunner().invoke(cli, ["calibrate", str(cfg), "-o", str(tmp_path / "out")])
+    assert r.exit_code == 0, r.output
+    assert json.loads((tmp_path / "out" / "calibration.json").read_text())["provenance"]["config"]["grid"] == "9x6"
+    cfg.write_text(f"images: {src}\npattern: chessboard\ngrid: 9x6\nspacing_mm: x\nloop: 7\nbogus: 1\n")
+    r = CliRunner().invoke(cli, ["calibrate", str(cfg), "-o", str(tmp_path / "out2")])
+    assert r.exit_code == 2 and "more problems (keys " in r.output and "'loop'" in r.output and "'bogus'" in r.output
+
+
 def test_identical_images_are_one_view(tmp_path):
     """Copies of one image (byte for byte, or the same pixels in another format) are one view:
     five copies of left13 had been counted as six views (18 for 13 images), moving k3 from

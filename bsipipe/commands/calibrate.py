@@ -73,6 +73,15 @@ class CalibrateConfig(StrictModel):
             raise ValueError("must be 2 to 30 px, or 'auto'")
         return v
 
+    @field_validator("grid", mode="before")
+    @classmethod
+    def _grid_list(cls, v):
+        # [COLS, ROWS], as synth's config writes the plate's grid, is COLSxROWS
+        if isinstance(v, (list, tuple)) and len(v) == 2 and all(isinstance(x, int) and not isinstance(x, bool)
+                                                                 for x in v):
+            return f"{v[0]}x{v[1]}"
+        return v
+
     @field_validator("grid")
     @classmethod
     def _grid(cls, v: str) -> str:
