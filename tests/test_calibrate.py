@@ -263,8 +263,8 @@ def test_a_subpix_window_wider_than_the_corners_is_warned_about(tmp_path, scale)
 
 def test_config_grid_as_a_list_and_every_bad_key_named(tmp_path):
     """A calibrate config's grid as [COLS, ROWS] (as synth's config writes it) is COLSxROWS (it
-    had been refused); a config with several bad keys names all of them, not 'and 2 more
-    problems'."""
+    had been refused); a camera name with a / (it names files) is refused; a config with
+    several bad keys names all of them, not 'and 2 more problems'."""
     src = tmp_path / "img"
     src.mkdir()
     for n in ("01", "03", "04"):
@@ -274,6 +274,9 @@ def test_config_grid_as_a_list_and_every_bad_key_named(tmp_path):
     r = CliRunner().invoke(cli, ["calibrate", str(cfg), "-o", str(tmp_path / "out")])
     assert r.exit_code == 0, r.output
     assert json.loads((tmp_path / "out" / "calibration.json").read_text())["provenance"]["config"]["grid"] == "9x6"
+    r = CliRunner().invoke(cli, ["calibrate", "--view", f"C-arm 1/left={src}", "--pattern", "chessboard", "--grid", "9x6",
+                                 "--spacing-mm", "25", "-o", str(tmp_path / "out3")])
+    assert r.exit_code == 2 and "camera name 'C-arm 1/left' cannot name a file" in r.output  # had made subfolders
     cfg.write_text(f"images: {src}\npattern: chessboard\ngrid: 9x6\nspacing_mm: x\nloop: 7\nbogus: 1\n")
     r = CliRunner().invoke(cli, ["calibrate", str(cfg), "-o", str(tmp_path / "out2")])
     assert r.exit_code == 2 and "more problems (keys " in r.output and "'loop'" in r.output and "'bogus'" in r.output

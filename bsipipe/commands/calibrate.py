@@ -170,6 +170,11 @@ def build_config(config_path=None, *, images=None, pattern=None, grid=None, spac
         raise InputError(f"camera {cfg.view_name!r} is given both by --images and --view")
     if cfg.stereo and len(cfg.stereo) != 2:
         raise InputError(f"--stereo needs exactly two cameras (NAME=DIR twice), got {len(cfg.stereo)}")
+    for name in [cfg.view_name, *cfg.views, *cfg.stereo]:
+        # a camera's name names its files (mayacam_NAME.txt, residuals_NAME.png)
+        if not name or any(c in name for c in "/\\") or name in (".", ".."):
+            raise InputError(f"camera name {name!r} cannot name a file (mayacam_<name>.txt): no / or \\",
+                             path=config_path)
     return cfg
 
 
