@@ -357,21 +357,21 @@ def _reference_effect_warnings(report, *, has_check: bool) -> list[dict]:
 
     out = []
     for i, step in enumerate(report.steps):
-        if step.effect.name == "label-swap":
-            new = [p for p in step.after.spec.swapped if p not in step.before.spec.swapped]
-            out.append(warning(
-                "label-swap", f"register: the CT labels {', '.join(f'{a} <-> {b}' for a, b in new)} are exchanged "
-                              f"relative to the X-ray markers (loop effect label-swap: FRE RMS "
-                              f"{_fre_rms(step.before.fit):.4g} -> {_fre_rms(step.after.fit):.4g} mm); registered "
-                              f"with the labels corrected: fix the CT file", log, pairs=[list(p) for p in new]))
-        if step.effect.name == "moving-reference":
-            new = [n for n in step.after.spec.moved if n not in step.before.spec.moved]
-            out.append(warning(
-                "moving-reference", f"register: reference(s) {', '.join(new)} moved relative to the others (on the "
-                                    f"brain rather than the skull, or knocked) and were left out of the transform "
-                                    f"(loop effect moving-reference: FRE RMS {_fre_rms(step.before.fit):.4g} -> "
-                                    f"{_fre_rms(step.after.fit):.4g} mm); their role in markers_ct.csv is "
-                                    "moved-reference", log, references=new))
+        name = step.effect.name
+        if name in ("label-swap", "moving-reference"):
+            fre = f"loop effect {name}: FRE RMS {_fre_rms(step.before.fit):.4g} -> {_fre_rms(step.after.fit):.4g} mm"
+            if name == "label-swap":
+                new = [list(p) for p in step.after.spec.swapped if p not in step.before.spec.swapped]
+                what = (f"the CT labels {', '.join(f'{a} <-> {b}' for a, b in new)} are exchanged relative to the "
+                        f"X-ray markers ({fre}); registered with the labels corrected: fix the CT file")
+                details = {"pairs": new}
+            else:
+                new = [n for n in step.after.spec.moved if n not in step.before.spec.moved]
+                what = (f"reference(s) {', '.join(new)} moved relative to the others (on the brain rather than the "
+                        f"skull, or knocked) and were left out of the transform ({fre}); their role in "
+                        "markers_ct.csv is moved-reference")
+                details = {"references": new}
+            out.append(warning(name, f"register: {what}", log, **details))
         rival = {"label-swap": "moving-reference", "moving-reference": "label-swap"}.get(step.effect.name)
         runner = step.evidence.get("runner_up") or {}
         if rival is None or runner.get("effect") != rival:
