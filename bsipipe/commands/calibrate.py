@@ -276,25 +276,34 @@ def _check_sizes(sizes: dict) -> tuple[int, int]:
     return ref
 
 
-def _subpix_window_warning(name: str, cfg: CalibrateConfig, spacings: dict):
+#: :func:`_subpix_window_warning`'s limits: the half window against the corners' typical least
+#: spacing, and the camera's reprojection RMS (px) that shows the corners pulled off.
+SUBPIX_WINDOW_SPACING_RATIO = 0.5
+SUBPIX_WINDOW_RMS_PX = 0.5
+
+
+def _subpix_window_warning(name: str, cfg: CalibrateConfig, spacings: dict, rms_px: float):
     """A ``subpix-window-large`` warning (or None) where a fixed ``cornerSubPix`` half window
-    reaches past half the corner spacing the views typically show (the median over views of
-    each one's least spacing): the window then holds neighbouring corners, which pull each
-    corner off.  OpenCV's left views (least spacing 22-30 px per view) keep the default 11;
-    the same views at half size (13-16 px) had calibrated with RMS 1.36 px and fx 276 without
-    a word (``--subpix-window-px auto``: 0.193 px, 269.8)."""
+    reaches past half the corners' typical spacing (the median over views of each one's least
+    spacing) and the camera's reprojection RMS is over :data:`SUBPIX_WINDOW_RMS_PX`: the window
+    holds the neighbouring squares' edges, which pull each corner off.  Measured: OpenCV's left
+    views at half size (least spacing 16 px, ratio 0.69) calibrated with RMS 1.36 px and fx
+    276 without a word (``auto``: 0.193 px, 269.8); at full size (30 px) 0.408 px; sharp
+    rendered boards with 18.6 px (ratio 0.59) fit to 0.277 px with 11 and 0.302 px with auto,
+    so a wide window alone is no fault."""
     from ..quality import warning
-    if not spacings or cfg.subpix_window_px == "auto":
+    if not spacings or cfg.subpix_window_px == "auto" or not rms_px > SUBPIX_WINDOW_RMS_PX:
         return None
     half = max(h for h, _ in spacings.values())
     typical = float(np.median([s for _, s in spacings.values()]))
-    if half <= 0.5 * typical:
+    if half <= SUBPIX_WINDOW_SPACING_RATIO * typical:
         return None
     return warning("subpix-window-large",
-                   f"calibrate: {name}: the cornerSubPix half window ({half} px) reaches past half the corners' "
-                   f"spacing (typically {typical:.1f} px at the closest in a view): neighbouring corners fall in it "
-                   "and pull each corner off; give --subpix-window-px auto (just under half the spacing)",
-                   logger=log, view=name, half_window_px=half, corner_spacing_px=typical)
+                   f"calibrate: {name}: reprojection RMS {rms_px:.3g} px with a cornerSubPix half window ({half} px) "
+                   f"that reaches past half the corners' spacing (typically {typical:.1f} px at the closest in a "
+                   "view): neighbouring squares' edges fall in it and pull each corner off; give "
+                   "--subpix-window-px auto (just under half the spacing)",
+                   logger=log, view=name, half_window_px=half, corner_spacing_px=typical, rms_px=rms_px)
 
 
 def _chessboard_named(name: str, cfg: CalibrateConfig, sizes: dict, rejected: dict, n_probe: int = 3) -> None:
@@ -520,9 +529,7 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
             frames = stereo_frames.setdefault(name, {}) if kind == "stereo" else None
             ambiguous_any |= _detect_source(path, cfg, kind, size, views, rejected, frames, sizes, mismatches, seen,
                                             spacings)
-        warn = _subpix_window_warning(name, cfg, spacings)
-        if warn:
-            warnings.append(warn)
+
         same = {k: why for k, why in rejected.items() if why.startswith("the same image as")}
         if same:
             warnings.append(warning(
@@ -590,6 +597,9 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
         result_views[name] = d
         log.info("calibrate: %s: %s, RMS %.4f px, held-out %.4f px (declared model %.4f px), %d views, %d left out",
                  name, final.camera.spec.describe(), final.rms_px, hf[0], h0[0], len(final.views), len(rejected))
+        warn = _subpix_window_warning(name, cfg, spacings, final.rms_px)
+        if warn:
+            warnings.append(warn)
         if final.rms_px > LARGE_RMS_PX:
             warnings.append(warning(
                 "large-rms", f"calibrate: {name}: reprojection RMS {final.rms_px:.2f} px is over {LARGE_RMS_PX:g} px; "
