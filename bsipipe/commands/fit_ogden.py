@@ -114,7 +114,7 @@ def _geometry(name: str, cfg: FitConfig, explicit: set, logfile) -> tuple[dict, 
             out[key] = float(logfile.geometry["thickness_mm"])
             source[key] = "log metadata: Thickness (a cylinder's height in Bluehill's compression templates)"
     missing = [k for k in ("diameter_mm", "height_mm") if k not in out]
-    bad = getattr(logfile, "geometry_invalid", {})
+    bad = logfile.geometry_invalid
     for k in missing:
         # the dimension the log's metadata states wrongly (an empty or zero Diameter), and no
         # option gives it: said with the line, not as missing
@@ -159,14 +159,14 @@ def _check_travel(path, disp, contact_mm: float, geo: dict, given: bool, geo_sou
     0.01 Pa, and written material cards with exit 0)."""
     where = "--contact-mm (contact_mm)" if given else "the detected contact"
     h = float(geo["height_mm"])
+    end = float(np.max(disp))
     loaded = np.count_nonzero(disp > contact_mm)
     if loaded < MIN_LOADED_SAMPLES:
         raise InputError(f"{where} at {contact_mm:.4g} mm leaves {loaded} samples loaded (the record's travel ends at "
-                         f"{float(np.max(disp)):.4g} mm past its first sample; at least {MIN_LOADED_SAMPLES} are "
-                         "needed)", path=path)
-    strain = (float(np.max(disp)) - contact_mm) / h
+                         f"{end:.4g} mm past its first sample; at least {MIN_LOADED_SAMPLES} are needed)", path=path)
+    strain = (end - contact_mm) / h
     if strain >= 1.0:
-        raise InputError(f"the travel past {where} ({float(np.max(disp)) - contact_mm:.4g} mm) is "
+        raise InputError(f"the travel past {where} ({end - contact_mm:.4g} mm) is "
                          f"{strain:.3g} times the specimen's height ({h:.4g} mm, {geo_source.get('height_mm', '')}): "
                          "a compression cannot exceed the height; check the contact and the height", path=path)
     if max_strain is not None:
@@ -180,7 +180,7 @@ def _check_travel(path, disp, contact_mm: float, geo: dict, given: bool, geo_sou
 def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig, explicit: set):
     from ..io.machine_log import read_machine_log
     from ..mechanics.contact import ContactNotInRecord, detect_contact, loading_ramps
-    from ..mechanics.fit import LogData
+    from ..mechanics.fit import MIN_UNLOADED_SAMPLES, LogData
 
     logs, inputs = [], []
     for p, given in zip(paths, _given_contacts(cfg, paths)):
@@ -226,7 +226,7 @@ def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig, explicit: set):
             contact_info = {"method": "given (--contact-mm / contact_mm)", "displacement_mm": given,
                             "before_first_sample": bool(given < disp[0]),
                             "extension_mm": float(ml.extension_mm[0] + ml.displacement_sign * given)}
-            if before.sum() >= 5:
+            if before.sum() >= MIN_UNLOADED_SAMPLES:
                 baseline = {"level_n": float(np.median(force[before])),
                             "source": f"median of the {int(before.sum())} samples before the given contact"}
             else:

@@ -34,8 +34,8 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from ..loop import Effect, LoopReport, SelectionRule, run_loop
-from .fit import (FLAT_TOE, ForceModelSpec, LogData, contact_compression, fit_logs, fit_tables, parameter_names,
-                  predict_force, toe_params)
+from .fit import (FLAT_TOE, MIN_UNLOADED_SAMPLES, ForceModelSpec, LogData, contact_compression, fit_logs, fit_tables,
+                  parameter_names, predict_force, toe_params)
 
 log = logging.getLogger(__name__)
 
@@ -149,10 +149,6 @@ def mechanics_effects(*, boundary_declared: bool, width: "WidthSeries | None" = 
                      "differ by %.1f %% (< %.0f %%); declare --boundary no-slip if the platens held the specimen",
                      100 * (spread - 1), 100 * (NO_SLIP_MIN_ASPECT_SPREAD - 1))
     return effects
-
-
-#: Fewest samples before the contact that measure the load cell's zero (``load-baseline-drift``).
-MIN_UNLOADED_SAMPLES = 5
 
 
 def baseline_measurable(lg: LogData) -> bool:

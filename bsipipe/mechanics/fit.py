@@ -1050,11 +1050,16 @@ def _intervals(problem: _Problem, theta, cov, n, p) -> dict:
     return out
 
 
+#: Fewest samples before the contact that measure the load cell's zero (``load-baseline-drift``,
+#: the relative errors' unloaded level, a given contact's baseline).
+MIN_UNLOADED_SAMPLES = 5
+
+
 def _unloaded_level(lg) -> float:
     """A log's unloaded force: the median of its samples before the contact (0 N where fewer
-    than five measure it)."""
+    than :data:`MIN_UNLOADED_SAMPLES` measure it)."""
     before = lg.force_n[lg.displacement_mm < lg.contact_mm]
-    return float(np.median(before)) if len(before) >= 5 else 0.0
+    return float(np.median(before)) if len(before) >= MIN_UNLOADED_SAMPLES else 0.0
 
 
 def _metrics(problem: _Problem, values: Mapping) -> dict:
