@@ -179,13 +179,15 @@ def build_config(config_path=None, *, images=None, pattern=None, grid=None, spac
 
 
 def _detect_source(path: str, cfg: CalibrateConfig, kind: str, size: list, views: dict, rejected: dict,
-                   frames: dict | None, sizes: dict, mismatches: dict, seen: dict, spacings: dict):
+                   frames: dict | None, sizes: dict, mismatches: dict, seen: dict, copies: dict, spacings: dict):
     """Detect the target in every frame of one source; fill ``views`` / ``rejected`` / ``frames``,
     ``sizes`` (key -> ((w, h), file, frame index)) and ``mismatches`` (key -> the board size a
     view shows when ``--grid`` does not fit it, or None).  ``seen`` (digest of the pixels ->
     key) holds the camera's images so far: an image identical to an earlier one (a file copied,
     a folder given as --view and --stereo) is one view, not two; it is left out of the
-    camera's views (rejected, naming the first) and still pairs as a stereo frame."""
+    camera's views (rejected, and in ``copies``: key -> the first's key) and still pairs as a
+    stereo frame.  ``spacings`` (key -> (cornerSubPix half window, least corner spacing)) for
+    chessboards."""
     import hashlib
     from ..imaging.gridfind import DetectionFailed, GridDetection, GridMismatch, find_target, parse_grid
     from ..imaging.calibrate import ViewData
@@ -210,12 +212,12 @@ def _detect_source(path: str, cfg: CalibrateConfig, kind: str, size: list, views
             size[0], size[1] = (w, h), f"{path}: {fr.name}"
         digest = hashlib.sha1(np.ascontiguousarray(fr.image).tobytes()).hexdigest()
         first = seen.setdefault(digest, key)
-        if first != key:
+        if first != key:               # the first is in views, or rejected: detected already
             rejected[key] = f"the same image as {first} (identical pixels): counted once"
+            copies[key] = first
             if frames is not None and first in views:
                 frames[fr.name] = views[first]
-            if frames is None or first in views or first in rejected:
-                continue
+            continue
         try:
             if cfg.pattern == "chessboard":
                 from ..imaging.gridfind import find_chessboard
@@ -232,8 +234,7 @@ def _detect_source(path: str, cfg: CalibrateConfig, kind: str, size: list, views
         if "corner_spacing_min_px" in det.info:
             spacings[key] = (det.info["subpix_half_window_px"], det.info["corner_spacing_min_px"])
         v = ViewData(key, det.image_points, det.object_points, det.ids)
-        if key not in rejected:
-            views[key] = v
+        views[key] = v
         if frames is not None:
             frames[fr.name] = v
     return ambiguous
@@ -521,24 +522,24 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
         size: list = [None, None, None]  # (w, h), first image, intensifier field centre
         sizes: dict = {}
         mismatches: dict = {}
-        seen: dict = {}
+        seen: dict = {}         # digest of an image's pixels -> its key
+        copies: dict = {}       # an image identical to an earlier one -> that one's key
         spacings: dict = {}     # chessboard view -> (cornerSubPix half window, least corner spacing), px
         for kind, path in sources:
             from ..io.images import list_image_files
             inputs.extend([path] if os.path.isfile(path) else [str(q) for q in list_image_files(path)])
             frames = stereo_frames.setdefault(name, {}) if kind == "stereo" else None
             ambiguous_any |= _detect_source(path, cfg, kind, size, views, rejected, frames, sizes, mismatches, seen,
-                                            spacings)
+                                            copies, spacings)
 
-        same = {k: why for k, why in rejected.items() if why.startswith("the same image as")}
-        if same:
+        if copies:
             warnings.append(warning(
                 "duplicate-views",
-                f"calibrate: {name}: {len(same)} image(s) identical to another of the camera's (a copied file, or one "
+                f"calibrate: {name}: {len(copies)} image(s) identical to another of the camera's (a copied file, or one "
                 "folder given twice): each counted once, else they would weigh double and shrink the parameters' "
-                "spread: " + "; ".join(f"{k}: {why[len('the same image as '):].split(' (')[0]}"
-                                        for k, why in list(same.items())[:6])
-                + (f" and {len(same) - 6} more" if len(same) > 6 else ""), logger=log, view=name, images=same))
+                "spread: " + "; ".join(f"{k}: {first}" for k, first in list(copies.items())[:6])
+                + (f" and {len(copies) - 6} more" if len(copies) > 6 else ""), logger=log, view=name,
+                images={k: rejected[k] for k in copies}))
         if sizes:
             size[0] = _check_sizes(sizes)
         if len(views) < 3:

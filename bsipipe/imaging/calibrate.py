@@ -654,11 +654,9 @@ def calibrate_with_rejection(views: Sequence[ViewData], image_size: tuple[int, i
                 cal_wo = calibrate_camera(keep, image_size, spec, init=cal.camera, twist_centre_px=twist_centre_px)
             except ValueError:
                 continue
-            r, t = cal_wo.camera.solve_pose(v.object_points, v.image_points, cal.rvecs[k], cal.tvecs[k])
-            held = _rms(v.image_points - cal_wo.camera.project(v.object_points, r, t))
+            held = _held_out_rms(cal_wo, cal, k)
             thr = outlier_threshold_px([cal_wo.per_view_rms_px[u.name] for u in keep])
-            others_with = _rms(np.concatenate([cal.residuals[u.name] for u in keep]))
-            influence = 1.0 - cal_wo.rms_px / others_with if others_with > 0 else 0.0
+            influence = _influence(cal, cal_wo, keep)
             why = (f"reprojection RMS {rms[k]:.3f} px, held out {held:.3f} px > threshold {thr:.3f} px "
                    f"(max(median + {OUTLIER_MAD_SIGMAS:g} x 1.4826 MAD, {OUTLIER_MEDIAN_FACTOR:g} x median) of the "
                    f"other views, fitted without it); leaving it out changes the other views' RMS by "
@@ -695,6 +693,21 @@ def calibrate_with_rejection(views: Sequence[ViewData], image_size: tuple[int, i
     return cal
 
 
+def _held_out_rms(cal_wo: Calibration, cal: Calibration, k: int) -> float:
+    """The reprojection RMS of ``cal``'s view ``k`` under ``cal_wo``, a calibration without it:
+    its pose found with those intrinsics (``solvePnP`` from its pose in ``cal``)."""
+    v = cal.views[k]
+    r, t = cal_wo.camera.solve_pose(v.object_points, v.image_points, cal.rvecs[k], cal.tvecs[k])
+    return _rms(v.image_points - cal_wo.camera.project(v.object_points, r, t))
+
+
+def _influence(cal: Calibration, cal_wo: Calibration, keep: Sequence[ViewData]) -> float:
+    """How much leaving views out of ``cal`` lowers the RMS of the views ``keep`` (``cal_wo``
+    is the calibration on ``keep`` alone): 1 - RMS without / RMS with them."""
+    others_with = _rms(np.concatenate([cal.residuals[u.name] for u in keep]))
+    return 1.0 - cal_wo.rms_px / others_with if others_with > 0 else 0.0
+
+
 def _outliers_together(cal: Calibration, judged: list, image_size, spec: ModelSpec, twist_centre_px,
                        min_views: int) -> dict[str, str]:
     """Views over their threshold that do not pull the model alone may pull it together: two
@@ -710,18 +723,14 @@ def _outliers_together(cal: Calibration, judged: list, image_size, spec: ModelSp
         cal_wo = calibrate_camera(keep, image_size, spec, init=cal.camera, twist_centre_px=twist_centre_px)
     except ValueError:
         return {}
-    others_with = _rms(np.concatenate([cal.residuals[u.name] for u in keep]))
-    influence = 1.0 - cal_wo.rms_px / others_with if others_with > 0 else 0.0
+    influence = _influence(cal, cal_wo, keep)
     if influence < OUTLIER_MIN_INFLUENCE:
         return {}
     thr = outlier_threshold_px([cal_wo.per_view_rms_px[u.name] for u in keep])
     out = {}
     index = {v.name: k for k, v in enumerate(cal.views)}
     for name in sorted(names, key=index.get):
-        k = index[name]
-        v = cal.views[k]
-        r, t = cal_wo.camera.solve_pose(v.object_points, v.image_points, cal.rvecs[k], cal.tvecs[k])
-        held = _rms(v.image_points - cal_wo.camera.project(v.object_points, r, t))
+        held = _held_out_rms(cal_wo, cal, index[name])
         if held > thr:
             out[name] = (f"held out {held:.3f} px > threshold {thr:.3f} px against a fit without "
                          f"{', '.join(sorted(names))}, which together pull the model: leaving them out changes the "
@@ -833,9 +842,13 @@ def target_symmetries(object_points_all: np.ndarray) -> list[np.ndarray]:
     return out
 
 
+def _angle_deg(Ra, Rb) -> float:
+    """The angle (deg) of the rotation between ``Ra`` and ``Rb``."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1) / 2, -1, 1))))
+
+
 def _pose_distance(Ra, ta, Rb, tb) -> float:
-    ang = np.degrees(np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1) / 2, -1, 1)))
-    return float(ang + np.linalg.norm(ta - tb) / 10.0)  # 1 deg ~ 10 mm
+    return float(_angle_deg(Ra, Rb) + np.linalg.norm(ta - tb) / 10.0)  # 1 deg ~ 10 mm
 
 
 @dataclass
@@ -944,8 +957,7 @@ def _pair_consistency(cam_a: CameraModel, cam_b: CameraModel, names: tuple[str, 
         rel[n] = (R, np.ravel(tb) - R @ np.ravel(ta))
     dev = {}
     for n, (R, t) in rel.items():
-        ang = [np.degrees(np.arccos(np.clip((np.trace(R @ R2.T) - 1) / 2, -1, 1))) for m, (R2, _) in rel.items()
-               if m != n]
+        ang = [_angle_deg(R2, R) for m, (R2, _) in rel.items() if m != n]
         mm = [float(np.linalg.norm(t - t2)) for m, (_, t2) in rel.items() if m != n]
         dev[n] = {"deg": float(np.median(ang)), "mm": float(np.median(mm))}
     baseline = float(np.median([np.linalg.norm(t) for _, t in rel.values()]))
