@@ -215,18 +215,14 @@ def choose_fe_result(n_results: int, *, given: int | None = None, fe_times=None,
         if not -n_results <= int(given) < n_results:
             raise ValueError(f"FE result {given} asked for; the file holds {n_results} (0..{n_results - 1}, or "
                              f"-1..-{n_results} from the end)")
-        k, why = int(given) % n_results, "given (--fe-result)"
-        if times is not None and len(times) != n_results:
-            # only the given result was read: its time is the one there is
-            times = np.full(n_results, np.nan) if len(times) != 1 else np.full(n_results, float(times[0]))
-        timed = times is not None and target_fe_time is not None and bool(np.isfinite(times[k]))
-        if timed:
-            gap = abs(float(times[k]) - target_fe_time)
-            warnings = ([] if gap <= time_tol else
-                        [f"the FE result given (FE time {times[k]:.6g}) is {gap:.3g} from the measured frame's FE "
-                         f"time {target_fe_time:.6g} (tolerance {time_tol:.3g}, half a frame interval)"])
-            return FEResultChoice(k, why, target_fe_time, warnings)
-        return FEResultChoice(k, why, target_fe_time, [])
+        k = int(given) % n_results
+        # every result's time, or only the given one's (the caller read that result alone)
+        t = np.nan if times is None else times[k] if len(times) == n_results else times[0] if len(times) == 1 \
+            else np.nan
+        warnings = []
+        if target_fe_time is not None and np.isfinite(t) and abs(t - target_fe_time) > time_tol:
+            warnings.append(_gap_warning("the FE result given", t, target_fe_time, time_tol))
+        return FEResultChoice(k, "given (--fe-result)", target_fe_time, warnings)
     elif n_results == 1:
         k, why = 0, "the file holds one result"
     elif timed:
@@ -252,10 +248,14 @@ def choose_fe_result(n_results: int, *, given: int | None = None, fe_times=None,
             warnings.append(f"the measured frame's FE time {target_fe_time:.6g} is outside the FE results' "
                             f"{times.min():.6g}..{times.max():.6g}; compared the FE result at {times[k]:.6g}")
         elif gap > time_tol:
-            warnings.append(f"the compared FE result (FE time {times[k]:.6g}) is {gap:.3g} from the measured "
-                            f"frame's FE time {target_fe_time:.6g} (tolerance {time_tol:.3g}, half a frame "
-                            f"interval): write FE results more often or choose another frame")
+            warnings.append(_gap_warning("the compared FE result", float(times[k]), target_fe_time, time_tol)
+                            + ": write FE results more often or choose another frame")
     return FEResultChoice(k, why, target_fe_time, warnings)
+
+
+def _gap_warning(what: str, fe_time: float, target_fe_time: float, time_tol: float) -> str:
+    return (f"{what} (FE time {fe_time:.6g}) is {abs(fe_time - target_fe_time):.3g} from the measured frame's FE "
+            f"time {target_fe_time:.6g} (tolerance {time_tol:.3g}, half a frame interval)")
 
 
 @dataclass
