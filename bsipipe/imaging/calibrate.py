@@ -780,8 +780,8 @@ def jackknife_std(folds: Sequence[dict]) -> dict[str, float]:
     trades with others (a narrow field's principal point against the views' tilts and the
     tangential terms).  Empty with fewer than 3 folds.
 
-    >>> jackknife_std([{"cx_px": 1.0}, {"cx_px": 2.0}, {"cx_px": 3.0}])["cx_px"]
-    1.632993161855452
+    >>> jackknife_std([{"cx_px": 1.0}, {"cx_px": 2.0}, {"cx_px": 3.0}])["cx_px"]   # sqrt(2/3 * 2)
+    1.1547005383792515
     """
     if len(folds) < 3:
         return {}
