@@ -996,10 +996,11 @@ def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, 
             "time_unit": time_unit, "vpair": vpair, "cross_view": cross_view}
 
 
-def _smoothed_points(table: pd.DataFrame, st: dict, smoothing: dict, max_offset_s: float | None, pair) -> pd.DataFrame:
+def _smoothed_points(table: pd.DataFrame, st: dict, smoothing: dict, max_offset_s: float | None, pair):
     """The smoothed centres triangulated with the loop's final model (its offset and drift as
     estimated), the raw points kept as ``*_raw`` columns; the stereo check of the error model
-    (``smoothing['stereo_check']``, ``sd_px`` scaled in ``table``) and each point's sd."""
+    (``smoothing['stereo_check']``, ``sd_px`` scaled in ``table``) and each point's sd.  Returns
+    the points and that fit."""
     from ..imaging.track_effects import StereoSpec, stereo_data, stereo_fit
     fit, vpair = st["fit"], st["vpair"]
     sub = table[table["view"].isin(pair)].copy()
@@ -1026,8 +1027,7 @@ def _smoothed_points(table: pd.DataFrame, st: dict, smoothing: dict, max_offset_
     smoothing["ray_gap_rms_mm_raw"] = st["loop"]["final"]["ray_gap_rms_mm"]
     smoothing["stereo_check"] = _stereo_check(table, points3d, vpair, pair, smoothing["tracks"])
     _point_sds(points3d, table, vpair, pair)
-    st["fit"] = fit
-    return points3d
+    return points3d, fit
 
 
 def _marker_summary(table: pd.DataFrame, events: list[dict], fit) -> dict:
@@ -1159,8 +1159,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     if cfg.smooth:
         table, smoothing = _smooth(table)
         if st is not None:
-            points3d = _smoothed_points(table, st, smoothing, cfg.max_offset_s, pair)
-            fit = st["fit"]
+            points3d, fit = _smoothed_points(table, st, smoothing, cfg.max_offset_s, pair)
     if points3d is not None:
         if cfg.lowpass_hz is not None:
             rate = cfg.fps or (1.0 / np.nanmedian(np.diff(st["data"].ta)) if st["time_unit"] == "s" else None)
