@@ -349,8 +349,30 @@ def export_fe(config, out) -> None:
                + f"; {s['n_springs']} springs of {s['per_spring_n_per_mm']:.5g} N/mm; wrote {out}/manifest.json")
 
 
+#: First threshold of the cyclic garbage collector in a command's process (Python's default: 700).
+GC_FIRST_THRESHOLD = 20_000
+
+
 def main() -> None:
-    cli(prog_name="bsipipe")
+    """The ``bsipipe`` executable.
+
+    The cyclic garbage collector is tuned for a short-lived process that imports a lot:
+    importing numpy, pandas, scipy and matplotlib creates about a million objects that live
+    to the end, and with the default first threshold (a collection every 700 new container
+    objects) the collector walks them again and again, then once more at exit.  A first
+    threshold of :data:`GC_FIRST_THRESHOLD` collects as surely (cyclic garbage is still
+    freed, every 20,000 allocations instead of 700), and freezing what is alive when the
+    command returns spares the exit's walks (the process ends; the system takes the memory
+    back).  Measured on ``bsipipe track``, 2 x 200 frames of the bench twin: about 0.5 s of
+    4.4 s wall time, the same share of CPU.  Tests calling :data:`cli` directly keep
+    Python's defaults."""
+    import gc
+
+    gc.set_threshold(GC_FIRST_THRESHOLD, *gc.get_threshold()[1:])
+    try:
+        cli(prog_name="bsipipe")
+    finally:
+        gc.freeze()
 
 
 if __name__ == "__main__":
