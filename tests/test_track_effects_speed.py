@@ -1,9 +1,9 @@
 """The stereo loop's fast paths give the numbers of the straightforward code they replace.
 
 ``track_effects`` builds and evaluates PCHIP, smooths tracks (Savitzky-Golay) and arranges the
-2-D table with whole-array operations, and ``loop.structure`` takes its p-values from
-``scipy.special``; each is checked here against the library call it stands in for (the same
-numbers, bit for bit), and the loop's path is checked not to import ``scipy.stats`` or
+2-D table with whole-array operations; each is checked here against the library call it
+stands in for (the same numbers, bit for bit; the p-values of ``bsipipe.distributions`` in
+``test_distributions.py``), and the loop's path is checked not to import ``scipy.stats`` or
 ``scipy.signal`` (about a second of start-up).
 """
 
@@ -19,7 +19,6 @@ import pytest
 
 from bsipipe.imaging import track_effects as te
 from bsipipe.imaging.triangulate import refine_points, triangulate_dlt, views_from_cameras
-from bsipipe.loop import structure
 
 from test_triangulate import _moving_tracks, two_carms
 
@@ -99,28 +98,6 @@ def test_smooth_runs_is_savgol_filter_per_run_bit_for_bit():
                     if len(idx) >= (w | 1):
                         ref[idx, j] = savgol_filter(x[idx, j], w | 1, 2, axis=0)
             assert np.array_equal(te._smooth_runs(x, w), ref, equal_nan=True), (trial, w)
-
-
-def test_p_values_are_scipy_stats_bit_for_bit():
-    from scipy import stats
-    rng = np.random.default_rng(13)
-    for _ in range(300):
-        n = int(rng.integers(4, 3000))
-        x = rng.normal(size=n) * rng.uniform(1e-3, 1e3)
-        y = rng.uniform(-1, 1) * x + rng.normal(size=n) + rng.choice([0.0, 1e6])
-        r, p = stats.pearsonr(x, y)
-        assert structure._pearsonr(x, y) == (float(r), float(p))
-        z = rng.normal() * rng.choice([0.1, 1.0, 10.0, 40.0])
-        assert structure._norm_sf2(z) == float(2 * stats.norm.sf(abs(z)))
-        q, dof = float(rng.uniform(0, 3) * rng.integers(1, 300)), int(rng.integers(1, 300))
-        assert structure._chi2_sf(q, dof) == float(stats.chi2.sf(q, dof))
-        f, k, m = float(rng.uniform(0, 5) ** 2), int(rng.integers(2, 30)), int(rng.integers(31, 30000))
-        assert structure._f_sf(f, k - 1, m - k) == float(stats.f.sf(f, k - 1, m - k))
-    for v in (0.0, np.inf, np.nan):
-        assert np.array_equal(structure._chi2_sf(v, 5), stats.chi2.sf(v, 5), equal_nan=True)
-        assert np.array_equal(structure._f_sf(v, 3, 10), stats.f.sf(v, 3, 10), equal_nan=True)
-    with pytest.warns(RuntimeWarning):
-        assert np.isnan(structure._pearsonr(np.ones(5), np.arange(5.0))).all()
 
 
 def _view_arrays_reference(table, view, markers, frames):

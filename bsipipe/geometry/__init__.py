@@ -5,7 +5,7 @@
 ``shape_functions`` -- C3D4, C3D10, C3D8, C3D20 shape functions, inverse mapping, point location.
 
 The public names are re-exported here and imported on first use, so importing one module
-does not import the others (``registration`` pulls in scipy.stats).
+does not import the others.
 """
 
 from __future__ import annotations

@@ -51,8 +51,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import numpy as np
-from scipy import stats
 from scipy.spatial.transform import Rotation
+
+from ..distributions import chi2_sf, f_sf
 
 __all__ = ["Similarity", "fit_similarity", "n_params", "residual_vectors", "fre", "estimate_fle",
            "tre_fitzpatrick", "tre_linearized", "tre_perturbation", "leave_one_out",
@@ -362,7 +363,7 @@ def leave_one_out(x, y, *, scale: bool) -> list[dict]:
         err = float(np.linalg.norm(y[k] - Tk.apply(x[k])))
         tiny = np.finfo(float).tiny
         f = ((rss - rss_k) / 3.0) / max(rss_k / dof2, tiny)
-        pv = float(stats.f.sf(f, 3, dof2))
+        pv = f_sf(f, 3, dof2)
         dbic = 3 * n * np.log(max(rss, tiny) / max(rss_k, tiny)) - 3 * np.log(3 * n)
         out.append({"error_mm": err, "rss_without_mm2": rss_k, "f": float(f), "p": pv,
                     "p_bonferroni": min(1.0, pv * n), "delta_bic": float(dbic)})
@@ -474,7 +475,7 @@ def reference_motion(track, others, *, time=None, max_knots: int = 12) -> dict:
     disp = np.linalg.norm(smooth - smooth[0], axis=1)     # motion since the first usable frame
     return {"n_frames": int(len(idx)), "sigma_mm": float(np.sqrt(sigma2)),
             "max_displacement_mm": float(disp.max()), "rms_displacement_mm": float(np.sqrt(np.mean(disp ** 2))),
-            "chi2": float(chi2), "dof": int(k), "p": float(stats.chi2.sf(chi2, k)),
+            "chi2": float(chi2), "dof": int(k), "p": chi2_sf(chi2, k),
             "delta_bic": float(chi2 - k * np.log(3 * len(idx))), "n_knots": n_knots}
 
 

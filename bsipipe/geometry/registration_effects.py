@@ -61,8 +61,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 import numpy as np
-from scipy import stats
 
+from ..distributions import chi2_isf, f_sf
 from ..loop import Effect, LoopReport, run_loop
 from .registration import Similarity, fit_similarity, leave_one_out, n_params, reference_motion, rounding_rss
 
@@ -190,7 +190,7 @@ def _heldout(data: RegistrationData, spec: RegistrationSpec, name: str) -> dict 
     if not np.isfinite(loo["p"]):
         return None
     n = len(used)
-    chi2_equiv = float(stats.chi2.isf(max(loo["p"], 1e-300), 3))
+    chi2_equiv = chi2_isf(max(loo["p"], 1e-300), 3)
     return {**loo, "chi2_equivalent": chi2_equiv, "delta_bic": chi2_equiv - 3 * np.log(3 * n),
             "in_sample_delta_bic": loo["delta_bic"]}
 
@@ -307,7 +307,7 @@ def _versus_moved(data: RegistrationData, spec: RegistrationSpec, after_spec: Re
     dof = 3 * (len(used) - 1) - n_params(spec.scale)
     f = ((rss_swap - rss_moved) / 3.0) / max(rss_moved / dof, np.finfo(float).tiny)
     return {"rss_swap_mm2": rss_swap, "rss_moved_mm2": float(rss_moved), "f": float(f), "dof": [3, int(dof)],
-            "p": float(stats.f.sf(f, 3, dof)) if f > 0 else 1.0}
+            "p": f_sf(f, 3, dof)}
 
 
 def _swap_evidence(data: RegistrationData, spec: RegistrationSpec, pair: tuple[str, str]) -> dict:

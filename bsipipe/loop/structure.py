@@ -31,60 +31,12 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-# The p-values come from scipy.special, the functions scipy.stats evaluates for these
-# distributions (the same numbers): importing scipy.stats costs about a second of start-up.
+# The p-values come from scipy.special (bsipipe.distributions), the functions scipy.stats
+# evaluates for these distributions: the same numbers without importing scipy.stats.
+from ..distributions import chi2_sf, f_sf, norm_sf2, pearsonr
 
 #: Family-wise level of the noise verdict (Bonferroni over the tests run).
 ALPHA = 0.01
-
-
-def _norm_sf2(z: float) -> float:
-    """Two-sided normal p-value of ``z``: ``2 * scipy.stats.norm.sf(abs(z))``."""
-    from scipy.special import ndtr
-    return float(2 * ndtr(-abs(z)))
-
-
-def _chi2_sf(q: float, dof: int) -> float:
-    """``scipy.stats.chi2.sf(q, dof)``."""
-    from scipy.special import chdtrc
-    if np.isnan(q):
-        return float("nan")
-    return float(chdtrc(dof, q)) if q > 0 else 1.0
-
-
-def _f_sf(f: float, d1: int, d2: int) -> float:
-    """``scipy.stats.f.sf(f, d1, d2)``."""
-    from scipy.special import fdtrc
-    if np.isnan(f):
-        return float("nan")
-    return float(fdtrc(d1, d2, f)) if f > 0 else 1.0
-
-
-def _pearsonr(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
-    """``scipy.stats.pearsonr(x, y)`` (two-sided) for 1-D float arrays of length >= 2, computed
-    as it computes it: r of the centred, scaled vectors; p from the beta distribution of r
-    under independence.  A constant input gives NaN, NaN (scipy warns)."""
-    from scipy.special import betaincc
-    n = float(len(x))
-    if np.all(x == x[0]) or np.all(y == y[0]):
-        import warnings
-        warnings.warn("An input array is constant; the correlation coefficient is not defined.",
-                      RuntimeWarning, stacklevel=3)
-        return float("nan"), float("nan")
-    xm = x - np.mean(x, keepdims=True)
-    ym = y - np.mean(y, keepdims=True)
-    xmax = np.max(np.abs(xm), keepdims=True)
-    ymax = np.max(np.abs(ym), keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        normxm = xmax * np.linalg.norm(xm / xmax, axis=-1, keepdims=True)
-        normym = ymax * np.linalg.norm(ym / ymax, axis=-1, keepdims=True)
-        r = np.vecdot(xm / normxm, ym / normym, axis=-1)
-    r = np.clip(r, -1.0, 1.0)
-    if n == 2:
-        return float(np.round(r)), 1.0
-    ab = np.asarray(n / 2 - 1, dtype=np.float64)
-    p = 2 * betaincc(ab, ab, (np.abs(r) - (-1)) / 2)
-    return float(r), float(p)
 
 
 def _as_series(residual, groups):
@@ -129,7 +81,7 @@ def runs_test(e: np.ndarray, groups: np.ndarray) -> dict:
     if var <= 0:
         return {"runs": int(runs), "expected": expected, "z": 0.0, "p": 1.0}
     z = (runs - expected) / np.sqrt(var)
-    return {"runs": int(runs), "expected": float(expected), "z": float(z), "p": _norm_sf2(z)}
+    return {"runs": int(runs), "expected": float(expected), "z": float(z), "p": norm_sf2(z)}
 
 
 def _autocorr(x: np.ndarray, max_lag: int) -> np.ndarray:
@@ -162,8 +114,8 @@ def autocorrelation_tests(e: np.ndarray, groups: np.ndarray, max_lag: int | None
         dof += h
     r1 = num / den if den > 0 else 0.0
     z = r1 * np.sqrt(max(n_pairs, 1))
-    lag1 = {"r1": float(r1), "z": float(z), "p": _norm_sf2(z)}
-    lb = {"q": q, "dof": int(dof), "p": _chi2_sf(q, dof) if dof else 1.0}
+    lag1 = {"r1": float(r1), "z": float(z), "p": norm_sf2(z)}
+    lb = {"q": q, "dof": int(dof), "p": chi2_sf(q, dof) if dof else 1.0}
     return lag1, lb
 
 
@@ -181,7 +133,7 @@ def _anova(e: np.ndarray, labels: np.ndarray) -> dict:
     if ss_within <= 0:
         return {"levels": int(k), "f": float("inf"), "p": 0.0}
     f = (ss_between / (k - 1)) / (ss_within / (n - k))
-    return {"levels": int(k), "f": float(f), "p": _f_sf(f, k - 1, n - k)}
+    return {"levels": int(k), "f": float(f), "p": f_sf(f, k - 1, n - k)}
 
 
 def _is_categorical(x: np.ndarray) -> bool:
@@ -205,7 +157,7 @@ def covariate_tests(e: np.ndarray, x: np.ndarray, n_bins: int = 10) -> dict:
     xf, ef = xf[ok], e[ok]
     if len(ef) < 4 or np.ptp(xf) == 0:
         return {"kind": "numeric", "r": 0.0, "p_r": 1.0, "anova_f": 0.0, "p_bins": 1.0, "p": 1.0}
-    r, p_r = _pearsonr(xf.astype(float), ef.astype(float))
+    r, p_r = pearsonr(xf.astype(float), ef.astype(float))
     edges = np.unique(np.quantile(xf, np.linspace(0, 1, n_bins + 1)))
     bins = np.clip(np.searchsorted(edges, xf, side="right") - 1, 0, max(len(edges) - 2, 0))
     a = _anova(ef, bins)

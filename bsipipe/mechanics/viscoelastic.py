@@ -22,12 +22,12 @@ import numpy as np
 _BLOCK_EXPONENT = 300.0
 
 
-def _prony_state(x: np.ndarray, d_elastic: np.ndarray, h0: float) -> np.ndarray:
-    r"""Solve :math:`h_{k+1} = e^{-\Delta x_k} h_k + \Delta\sigma_k (1 - e^{-\Delta x_k}) / \Delta x_k`.
+class _PronyTerm:
+    r"""One Prony term's recursion on a fixed time grid, its coefficients computed once.
 
-    ``x`` is time in units of the relaxation time (non-decreasing), ``d_elastic`` the
-    increments of the (already ``g_i``-scaled) elastic response, ``h0`` the state at
-    ``x[0]``.  The first-order recursion is summed in closed form, block by block:
+    The state obeys :math:`h_{k+1} = e^{-\Delta x_k} h_k + \Delta\sigma_k (1 - e^{-\Delta x_k}) / \Delta x_k`,
+    ``x`` being time in units of the relaxation time (non-decreasing).  The first-order
+    recursion is summed in closed form, block by block:
 
     .. math::
 
@@ -36,27 +36,81 @@ def _prony_state(x: np.ndarray, d_elastic: np.ndarray, h0: float) -> np.ndarray:
 
     with the block end ``e`` chosen so that :math:`x_e - x_s \le 300` (no overflow; every
     exponent in the sum is :math:`\le 0`).  A single step longer than that is its own block.
+    Everything but the increments (the blocks and their exponentials) depends on the grid
+    alone: a fit that applies the operator to many elastic histories on one grid
+    (:class:`QLV`) prepares it once.
     """
-    n = len(x)
-    h = np.empty(n)
-    h[0] = h0
-    if n == 1:
+
+    def __init__(self, x: np.ndarray):
+        self.n = n = len(x)
+        if n == 1:
+            return
+        dx = np.diff(x)
+        # (1 - e^{-dx}) / dx, with its limit 1 at dx = 0 (repeated time stamps).
+        with np.errstate(invalid="ignore", divide="ignore"):
+            self.frac = np.where(dx > 0, -np.expm1(-dx) / np.where(dx > 0, dx, 1.0), 1.0)
+        self.blocks = []
+        s = 0
+        while s < n - 1:
+            e = int(np.searchsorted(x, x[s] + _BLOCK_EXPONENT, side="right")) - 1
+            e = min(max(e, s + 1), n - 1)
+            xe = x[e]
+            # e^{x_{k+1} - x_e} (k = s..e-1), e^{x_s - x_e}, e^{x_e - x_n} (n = s+1..e)
+            self.blocks.append((s, e, np.exp(x[s + 1:e + 1] - xe), np.exp(x[s] - xe), np.exp(xe - x[s + 1:e + 1])))
+            s = e
+
+    def state(self, d_elastic: np.ndarray, h0: float) -> np.ndarray:
+        """The state at every sample from the (already ``g_i``-scaled) elastic increments and
+        the state ``h0`` at the first sample."""
+        h = np.empty(self.n)
+        h[0] = h0
+        if self.n == 1:
+            return h
+        b = d_elastic * self.frac
+        for s, e, w, first, back in self.blocks:
+            acc = h[s] * first + np.cumsum(b[s:e] * w)
+            h[s + 1:e + 1] = acc * back
         return h
-    dx = np.diff(x)
-    # (1 - e^{-dx}) / dx, with its limit 1 at dx = 0 (repeated time stamps).
-    with np.errstate(invalid="ignore", divide="ignore"):
-        frac = np.where(dx > 0, -np.expm1(-dx) / np.where(dx > 0, dx, 1.0), 1.0)
-    b = d_elastic * frac
-    s = 0
-    while s < n - 1:
-        e = int(np.searchsorted(x, x[s] + _BLOCK_EXPONENT, side="right")) - 1
-        e = min(max(e, s + 1), n - 1)
-        xe = x[e]
-        w = np.exp(x[s + 1:e + 1] - xe)                     # e^{x_{k+1} - x_e}, k = s..e-1
-        acc = h[s] * np.exp(x[s] - xe) + np.cumsum(b[s:e] * w)
-        h[s + 1:e + 1] = acc * np.exp(xe - x[s + 1:e + 1])
-        s = e
-    return h
+
+
+class QLV:
+    """The quasi-linear viscoelastic operator of a Prony series on one time grid:
+    ``QLV(time_s, g, tau_s)(elastic)`` is :func:`qlv_response` ``(time_s, elastic, g, tau_s)``,
+    the same numbers, with the grid's coefficients computed once for every history applied.
+
+    >>> t = np.array([0.0, 0.5, 1.0, 10.0])
+    >>> op = QLV(t, [0.5], [1.0])
+    >>> bool(np.array_equal(op(np.ones(4)), qlv_response(t, np.ones(4), [0.5], [1.0])))
+    True
+    """
+
+    def __init__(self, time_s, g, tau_s):
+        t = np.asarray(time_s, dtype=float)
+        g = np.atleast_1d(np.asarray(g, dtype=float))
+        tau = np.atleast_1d(np.asarray(tau_s, dtype=float))
+        if t.ndim != 1:
+            raise ValueError(f"time_s must be 1-D, got shape {t.shape}")
+        if g.shape != tau.shape:
+            raise ValueError(f"g and tau_s must have one length, got {g.shape} and {tau.shape}")
+        if np.any(tau <= 0):
+            raise ValueError("relaxation times must be positive")
+        if len(t) > 1 and np.any(np.diff(t) < 0):
+            raise ValueError("time_s must be non-decreasing")
+        self.n = len(t)
+        self.g_inf = 1.0 - g.sum()
+        self.terms = [(gi, _PronyTerm((t - t[0]) / ti)) for gi, ti in zip(g, tau) if gi != 0.0] if len(t) else []
+
+    def __call__(self, elastic) -> np.ndarray:
+        se = np.asarray(elastic, dtype=float)
+        if se.shape != (self.n,):
+            raise ValueError(f"time_s and elastic must be 1-D of one length, got ({self.n},) and {se.shape}")
+        if self.n == 0:
+            return np.zeros(0)
+        out = self.g_inf * se
+        d_se = np.diff(se)
+        for gi, term in self.terms:
+            out = out + term.state(gi * d_se, gi * se[0])
+        return out
 
 
 def qlv_response(time_s, elastic, g, tau_s) -> np.ndarray:
@@ -105,26 +159,9 @@ def qlv_response(time_s, elastic, g, tau_s) -> np.ndarray:
     """
     t = np.asarray(time_s, dtype=float)
     se = np.asarray(elastic, dtype=float)
-    g = np.atleast_1d(np.asarray(g, dtype=float))
-    tau = np.atleast_1d(np.asarray(tau_s, dtype=float))
     if t.ndim != 1 or se.shape != t.shape:
         raise ValueError(f"time_s and elastic must be 1-D of one length, got {t.shape} and {se.shape}")
-    if g.shape != tau.shape:
-        raise ValueError(f"g and tau_s must have one length, got {g.shape} and {tau.shape}")
-    if np.any(tau <= 0):
-        raise ValueError("relaxation times must be positive")
-    if len(t) > 1 and np.any(np.diff(t) < 0):
-        raise ValueError("time_s must be non-decreasing")
-    if len(t) == 0:
-        return np.zeros(0)
-    out = (1.0 - g.sum()) * se
-    d_se = np.diff(se)
-    for gi, ti in zip(g, tau):
-        if gi == 0.0:
-            continue
-        x = (t - t[0]) / ti
-        out = out + _prony_state(x, gi * d_se, gi * se[0])
-    return out
+    return QLV(t, g, tau_s)(se)
 
 
 def relaxation_function(time_s, g, tau_s) -> np.ndarray:
