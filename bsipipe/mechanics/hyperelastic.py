@@ -87,36 +87,6 @@ def ogden_nominal_stress(stretch, mus, alphas, mode: str = "uniaxial") -> np.nda
     return out
 
 
-def ogden_uniaxial_stress_slope(stretch, mus, alphas) -> tuple[np.ndarray, np.ndarray]:
-    r"""Uniaxial nominal stress of an N-term Ogden solid and its slope :math:`dP/d\lambda`.
-
-    .. math::
-
-        P = \sum_i \frac{2\mu_i}{\alpha_i}\left(\lambda^{\alpha_i - 1} - \lambda^{-\alpha_i/2 - 1}\right),
-        \qquad
-        \frac{dP}{d\lambda} = \sum_i \frac{2\mu_i}{\alpha_i}\left((\alpha_i - 1)\lambda^{\alpha_i - 2}
-            + (\alpha_i/2 + 1)\lambda^{-\alpha_i/2 - 2}\right)
-
-    (the stress of :func:`ogden_nominal_stress` ``"uniaxial"``, from the same two powers).
-
-    >>> p, k = ogden_uniaxial_stress_slope(np.array([0.8, 1.0]), [720.0], [-4.7])
-    >>> bool(np.allclose(p, ogden_nominal_stress([0.8, 1.0], [720.0], [-4.7])))
-    True
-    >>> round(float(k[1] / (3 * 720.0)), 12)      # Young's modulus 3 mu at lambda = 1
-    1.0
-    """
-    lam = np.asarray(stretch, dtype=float)
-    p = np.zeros_like(lam)
-    k = np.zeros_like(lam)
-    for mu, a in zip(mus, alphas):
-        c = 2.0 * mu / a
-        up = lam ** (a - 1.0)
-        down = lam ** (-a / 2.0 - 1.0)
-        p = p + c * (up - down)
-        k = k + c * ((a - 1.0) * up + (a / 2.0 + 1.0) * down) / lam
-    return p, k
-
-
 def ogden_energy(stretches, mus, alphas) -> np.ndarray:
     r"""Strain energy density :math:`W` for principal stretches ``stretches`` (shape (..., 3)).
 
