@@ -7,6 +7,7 @@ calls).
 """
 
 import numpy as np
+import pytest
 
 from bsipipe.mechanics import fit as F
 from bsipipe.mechanics.hyperelastic import ogden_nominal_stress
@@ -63,3 +64,15 @@ def test_predictions_do_not_depend_on_the_calls_before():
         prob.predict({**values, "compliance_mm_per_n": c})
     assert np.array_equal(prob.predict(values)[0], first)
     assert np.array_equal(F.predict_force(log, spec, values), first)
+
+
+def test_prony_terms_cache_serves_one_grid_and_keeps_the_last_few():
+    from bsipipe.mechanics.viscoelastic import PronyTerms
+    t = np.linspace(0.0, 10.0, 50)
+    cache = PronyTerms(size=3)
+    se = np.sin(t)
+    for tau in (1.0, 2.0, 3.0, 4.0, 1.0):
+        assert np.array_equal(QLV(t, [0.2], [tau], cache)(se), qlv_response(t, se, [0.2], [tau]))
+    assert len(cache) == 3
+    with pytest.raises(ValueError, match="one time grid"):
+        QLV(t * 2, [0.2], [1.0], cache)

@@ -134,7 +134,7 @@ from scipy import optimize
 
 from ..distributions import t_ppf
 from .hyperelastic import MODES, Law, get_law, ogden_nominal_stress
-from .viscoelastic import QLV, qlv_response
+from .viscoelastic import QLV, PronyTerms
 
 log = logging.getLogger(__name__)
 
@@ -498,7 +498,8 @@ def _elastic_force(stress, x_mm, height_mm, area_m2, toe=FLAT_TOE, with_derivati
     return f, dp * area_m2 / height_mm * slope
 
 
-def _tissue_force(time_s, x_mm, height_mm, area_m2, stress, g, tau, compliance, toe=FLAT_TOE, max_iter=60):
+def _tissue_force(time_s, x_mm, height_mm, area_m2, stress, g, tau, compliance, toe=FLAT_TOE, max_iter=60,
+                  terms: PronyTerms | None = None):
     """QLV[F_e(delta(x - C F))] solved for F (see the module docstring).
 
     With a machine compliance the force is the fixed point of a Jacobi iteration, always
@@ -507,11 +508,12 @@ def _tissue_force(time_s, x_mm, height_mm, area_m2, stress, g, tau, compliance, 
     optimiser's finite differences need.  (Started from the force last solved, the
     iteration took half the steps per call, but the residual then depended on the calls
     before: on the real Bluehill 2 export the optimiser needed 4x the evaluations and found
-    a worse minimum, BIC -10284 against -10445.)"""
+    a worse minimum, BIC -10284 against -10445.)  ``terms``: the log's cache of Prony
+    recursions (:class:`~bsipipe.mechanics.viscoelastic.PronyTerms`; the same numbers)."""
+    qlv = QLV(time_s, g, tau, terms) if len(g) else None
     if compliance <= 0.0:
         fe, _ = _elastic_force(stress, x_mm, height_mm, area_m2, toe)
-        return qlv_response(time_s, fe, g, tau) if len(g) else fe
-    qlv = QLV(time_s, g, tau) if len(g) else None
+        return qlv(fe) if qlv is not None else fe
     f = np.zeros_like(x_mm)
     scale = None
     for _ in range(max_iter):
@@ -526,10 +528,10 @@ def _tissue_force(time_s, x_mm, height_mm, area_m2, stress, g, tau, compliance, 
 
 
 def _log_force(log_: LogData, spec: ForceModelSpec, law: Law, tissue, g, tau, offset, compliance, b0, b1,
-               toe=FLAT_TOE):
+               toe=FLAT_TOE, terms: PronyTerms | None = None):
     stress = _stress_function(spec, law, tissue, log_.aspect)
     x = log_.displacement_mm - log_.contact_mm - offset
-    f = _tissue_force(log_.time_s, x, log_.height_mm, log_.area_m2, stress, g, tau, compliance, toe)
+    f = _tissue_force(log_.time_s, x, log_.height_mm, log_.area_m2, stress, g, tau, compliance, toe, terms=terms)
     if b0 or b1:
         f = f + b0 + b1 * (log_.time_s - log_.time_s[0])
     return f
@@ -621,6 +623,7 @@ class _LogProblem(_Problem):
         self.logs = list(logs)
         self.spec = spec
         self.law = get_law(spec.law)
+        self._prony_terms = [PronyTerms() for _ in self.logs]    # each log's Prony recursions, by tau
         self.used = []
         for i, lg in enumerate(self.logs):
             m = np.ones(len(lg.time_s), dtype=bool)
@@ -725,7 +728,8 @@ class _LogProblem(_Problem):
         return tissue, g, tau, off, c, b0, b1, toe
 
     def predict(self, values: Mapping) -> list[np.ndarray]:
-        return [_log_force(lg, self.spec, self.law, *self._split(values, i)) for i, lg in enumerate(self.logs)]
+        return [_log_force(lg, self.spec, self.law, *self._split(values, i), terms=c)
+                for i, (lg, c) in enumerate(zip(self.logs, self._prony_terms))]
 
     def residual(self, theta, data=None):
         values = self.to_values(theta)
