@@ -165,6 +165,24 @@ def test_quoted_values_with_thousands_separators(tmp_path):
     np.testing.assert_array_equal(log.load_n, [-1234.5, -2000.25])
 
 
+@pytest.mark.parametrize("preamble", [
+    # results tables whose names, read word by word, name the channels (Bluehill 3, Universal)
+    '"Results Table 1"\n"Extension at Maximum Load (mm)","Maximum Load (N)","Specimen label"\n"4.100","0.547","s1"\n\n'
+    '"Raw Data"\n',
+    "Results Table 1\nSpecimen label,Maximum Compressive load (N),Compressive extension at Maximum (mm)\n"
+    "s1,0.547,4.1\n\nRaw Data\n",
+    # free text naming them
+    "Test end: Extension limit or Load drop 40 %\n\n",
+])
+def test_lines_naming_the_channels_without_data_under_them_are_not_the_header(tmp_path, preamble):
+    p = tmp_path / "results_first.csv"
+    p.write_text(preamble + '"Time","Extension","Load"\n"(s)","(mm)","(N)"\n'
+                 + "".join(f'"{0.1 * k:.1f}","{-0.01 * k:.2f}","{-0.02 * k:.3f}"\n' for k in range(12)))
+    log = read_machine_log(p)
+    np.testing.assert_allclose(log.time_s, 0.1 * np.arange(12))
+    np.testing.assert_allclose(log.load_n, -0.02 * np.arange(12))
+
+
 def test_missing_file_is_an_input_error(tmp_path):
     with pytest.raises(InputError, match="cannot read"):
         read_machine_log(tmp_path / "absent.csv")

@@ -220,7 +220,15 @@ def _roles(names: list[str]) -> dict[str, int]:
 
 
 def _find_header(lines: list[str]) -> tuple[int, str | None, list[str], dict[str, int]] | None:
-    """The first line naming at least two of time, extension and load, with its delimiter."""
+    """The first line naming at least two of time, extension and load, with its delimiter,
+    that data rows follow.
+
+    A names row is followed, after at most a units row, by numbers in its columns.  A line
+    that names the channels without data under it is a results table's names (``Extension
+    at Maximum Load (mm)`` read word by word) or the preamble's text (``Test end: Extension
+    limit or Load drop``), not the data's header; where no candidate has data under it, the
+    first is taken (its missing data is then the error)."""
+    first = None
     for i, line in enumerate(lines[:_HEADER_SEARCH_LINES]):
         if not line.strip():
             continue
@@ -231,9 +239,29 @@ def _find_header(lines: list[str]) -> tuple[int, str | None, list[str], dict[str
             n = sum(r in roles for r in _REQUIRED)
             if n >= 2 and (best is None or n > best[0]):  # ties: the earlier, stricter delimiter
                 best = (n, delim, cells, roles)
-        if best is not None:
-            return i, best[1], best[2], best[3]
-    return None
+        if best is None:
+            continue
+        found = (i, best[1], best[2], best[3])
+        if _data_follows(lines, i, best[1], max(best[3].values())):
+            return found
+        first = first or found
+    return first
+
+
+def _data_follows(lines: list[str], i: int, delimiter: str | None, last_col: int, look: int = 3) -> bool:
+    """Whether a row of numbers reaching column ``last_col`` comes within ``look`` non-empty
+    lines after line ``i`` (a units row may come between)."""
+    seen = 0
+    for line in lines[i + 1:]:
+        if not line.strip():
+            continue
+        cells = _cells(line, delimiter)
+        if len(cells) > last_col and _is_numeric_row(cells):
+            return True
+        seen += 1
+        if seen >= look:
+            return False
+    return False
 
 
 def _is_numeric_row(cells: list[str]) -> bool:
