@@ -364,3 +364,27 @@ def test_contact_mm_in_config_and_thickness_as_height(tmp_path):
     assert abs(d["params"]["mu_pa"] / 720 - 1) < 0.03
     r = _invoke("fit-ogden", path, "--contact-mm", "0.1", "--contact-mm", "0.2", "-o", tmp_path / "two")
     assert r.exit_code == 2 and "one for every log" in r.output
+
+
+@pytest.mark.parametrize("value", [-99999.0, 99999.0, -9.9e37, -2.1])
+def test_a_glitch_or_an_over_range_sample_is_left_out_and_named(tmp_path, value):
+    """One load sample that is no force (a glitch, Bluehill's over-range code 9.9E+37, a 2 N spike
+    on a 0.55 N test) had given exit 0 with mu 265,736 Pa, 2.6e38 Pa or alpha +11.6 (one against
+    compression had turned the sign of the whole record): it is left
+    out, by line, and the fit is the clean log's; a channel of such samples is exit 2."""
+    frame, _ = synth_compression_log(seed=33)                  # mu 720 Pa, alpha -4.7
+    geometry = {"diameter_mm": 18.0, "height_mm": 12.0}
+    k = int(0.5 * len(frame))
+    frame.loc[k, "load_n"] = value
+    path = write_bluehill2(frame, tmp_path / "glitch.csv", label="S6", geometry=geometry)
+    r = _invoke("fit-ogden", path, "--no-loop", "--bootstrap", "0", "-o", tmp_path / "out")
+    assert r.exit_code == 0, r.output
+    d = json.loads((tmp_path / "out" / "fit.json").read_text())
+    assert abs(d["params"]["mu_pa"] / 720.0 - 1) < 0.03 and abs(d["params"]["alpha"] + 4.7) < 0.1
+    spikes = [w for w in d["warnings"] if w["code"] == "load-spikes"]
+    assert len(spikes) == 1 and len(spikes[0]["lines"]) == 1
+    frame.loc[::50, "load_n"] = 9.9e37                          # a broken channel, not a glitch
+    path = write_bluehill2(frame, tmp_path / "broken.csv", label="S6", geometry=geometry)
+    r = _invoke("fit-ogden", path, "--no-loop", "--bootstrap", "0", "-o", tmp_path / "out2")
+    assert r.exit_code == 2 and "over-range" in r.output and "broken.csv" in r.output
+    assert not (tmp_path / "out2").exists()

@@ -177,8 +177,13 @@ def _check_travel(path, disp, contact_mm: float, geo: dict, given: bool, geo_sou
                              path=path)
 
 
+#: More spikes than this (and than 1 % of the record) is no glitch: the channel is broken or
+#: the column is not a load.
+MAX_SPIKES = 5
+
+
 def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig, explicit: set):
-    from ..io.machine_log import read_machine_log
+    from ..io.machine_log import load_spikes, read_machine_log
     from ..mechanics.contact import ContactNotInRecord, detect_contact, loading_ramps
     from ..mechanics.fit import MIN_UNLOADED_SAMPLES, LogData
 
@@ -188,15 +193,27 @@ def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig, explicit: set):
         geo, geo_source = _geometry(str(p), cfg, explicit, ml)
         disp, force = ml.compression()
         time_s = ml.time_s
+        rows = np.arange(len(ml))                # the record's sample of each one kept
+        spikes = load_spikes(ml.load_n)
+        record: dict = {"n_record": int(len(ml))}
+        if spikes.any():
+            lines = [ml.line_of(i) for i in np.flatnonzero(spikes)]
+            if spikes.sum() > max(MAX_SPIKES, 0.01 * len(ml)):
+                raise InputError(f"{int(spikes.sum())} load samples are over-range codes (|F| >= 1e30) or "
+                                 f"single-sample spikes (lines {_lines_listed(lines)}): the load channel did not "
+                                 "record a force there; check the export", path=p)
+            keep = ~spikes
+            rows, time_s, disp, force = rows[keep], time_s[keep], disp[keep], force[keep]
+            record["spikes_left_out"] = {"lines": lines, "load_n": [float(v) for v in ml.load_n[spikes]]}
         ramps = loading_ramps(disp)
-        record = {"n_record": int(len(ml)), "loading_ramps": len(ramps)}
+        record["loading_ramps"] = len(ramps)
         if len(ramps) > 1:
             # A cyclic record: later cycles follow a loading history (preconditioning, set) that
             # the first loading does not have; the first loading ramp is what is fitted.
             stop = ramps[0][1]
             time_s, disp, force = time_s[:stop], disp[:stop], force[:stop]
-            record["fitted_part"] = (f"first loading ramp only: samples 0-{stop - 1} of {len(ml)} "
-                                     f"(lines {ml.line_of(0)}-{ml.line_of(stop - 1)}; the record has "
+            record["fitted_part"] = (f"first loading ramp only: samples 0-{rows[stop - 1]} of {len(ml)} "
+                                     f"(lines {ml.line_of(rows[0])}-{ml.line_of(rows[stop - 1])}; the record has "
                                      f"{len(ramps)} loading ramps)")
         else:
             record["fitted_part"] = "whole record"
@@ -397,6 +414,27 @@ def _compliance_implausible(c_mm_per_n: float, data) -> list[dict]:
     return out
 
 
+def _lines_listed(lines: list[int], most: int = 8) -> str:
+    return ", ".join(map(str, lines[:most])) + (f" and {len(lines) - most} more" if len(lines) > most else "")
+
+
+def _spikes_left_out(input_info: list[dict]) -> list[dict]:
+    """``load-spikes`` warnings: the samples of a log left out of the fit as over-range codes or
+    single-sample spikes (:func:`bsipipe.io.machine_log.load_spikes`), by line."""
+    from ..quality import warning
+    out = []
+    for info in input_info:
+        sp = info.get("spikes_left_out")
+        if sp:
+            out.append(warning(
+                "load-spikes",
+                f"fit-ogden: {Path(info['path']).name}: {len(sp['lines'])} load sample(s) left out of the fit, "
+                f"over-range codes or single-sample spikes (line(s) {_lines_listed(sp['lines'])}: "
+                + ", ".join(f"{v:.4g} N" for v in sp["load_n"][:8]) + ")", log, path=str(info["path"]),
+                lines=sp["lines"]))
+    return out
+
+
 def _baseline_ignored(input_info: list[dict], data) -> list[dict]:
     """``force-baseline-ignored`` warnings: a log whose samples before the contact measure an
     unloaded force away from zero (a load cell not tared, an offset) fitted by a model that
@@ -587,6 +625,8 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
                   "rmse": "N" if kind == "logs" else "Pa"},
     }
     result["warnings"] = _fit_quality(final)
+    if kind == "logs":
+        result["warnings"] += _spikes_left_out(input_info)
     if kind == "logs" and not spec.baseline_drift:
         result["warnings"] += _baseline_ignored(input_info, data)
     if kind == "logs" and spec.compliance:

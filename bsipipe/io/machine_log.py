@@ -597,11 +597,53 @@ def _geometry(rows, decimal, path) -> tuple[dict[str, float], dict[str, tuple[st
     return out, invalid
 
 
+#: A load sample whose magnitude reaches this is a channel's over-range code (Bluehill writes
+#: 9.9E+37), not a force.
+OVERRANGE_N = 1e30
+#: A sample is a spike when its jumps in and out are both this many times the larger of the
+#: neighbouring steps (and of the channel's resolution).
+SPIKE_RATIO = 10.0
+
+
+def load_spikes(load) -> np.ndarray:
+    """Samples of a load channel that are no force: over-range codes (``|F| >= 1e30``) and
+    single-sample spikes (a glitch, a dropped bit), as a bool mask.
+
+    A sample is a spike when it jumps away from its predecessor and back to its successor by
+    more than :data:`SPIKE_RATIO` times the steps around it (``|F[i-1] - F[i-2]|``,
+    ``|F[i+2] - F[i+1]|``) and the channel's resolution (the median nonzero step): a ramp's
+    turning point moves in steps like its neighbours', a glitch jumps and comes back.
+
+    >>> bool(load_spikes([0.0, 0.1, 0.2, 0.3, 5.0, 0.5, 0.6, 0.7, 0.8])[4])
+    True
+    >>> int(load_spikes([0.0, 0.1, 0.2, 0.3, 0.4, 0.3, 0.2, 0.1, 0.0]).sum())     # a turning point
+    0
+    """
+    f = np.asarray(load, dtype=float)
+    bad = ~np.isfinite(f) | (np.abs(f) >= OVERRANGE_N)
+    if f.size < 5:
+        return bad
+    g = f.copy()
+    if bad.any():
+        good = np.flatnonzero(~bad)
+        if good.size == 0:
+            return bad
+        g[bad] = np.interp(np.flatnonzero(bad), good, f[good])
+    d = np.abs(np.diff(g))                       # d[i] = |g[i+1] - g[i]|
+    nz = d[d > 0]
+    resolution = float(np.median(nz)) if nz.size else 0.0
+    jump_in, jump_out = d[1:-2], d[2:-1]         # for i = 2 .. n-3: |g[i] - g[i-1]|, |g[i+1] - g[i]|
+    around = np.maximum(np.maximum(d[:-3], d[3:]), resolution)
+    spike = np.zeros(f.size, bool)
+    spike[2:-2] = (jump_in > SPIKE_RATIO * around) & (jump_out > SPIKE_RATIO * around)
+    return bad | spike
+
+
 def _compression_signs(extension, load, load_name, extension_name) -> tuple[int, int, str]:
     """The sign of compression on the load and extension channels.
 
     The record decides: the sample most loaded away from the start,
-    ``k = argmax |F - F_start|``, is where the machine compressed hardest, so the sign of
+    ``k = argmax |F - F_start|`` (:func:`load_spikes` left out), is where the machine compressed hardest, so the sign of
     ``F_k - F_start`` is the load's sign of compression and that of ``x_k - x_0`` the
     extension's.  A name saying ``compressive`` (Bluehill's ``Compressive load``,
     ``Compressive extension``) means +1; where the data are clear and say the opposite (a
@@ -609,8 +651,9 @@ def _compression_signs(extension, load, load_name, extension_name) -> tuple[int,
     data win and ``sign_from`` says so.  A record with no load change keeps the name's sign,
     else Instron's convention (compression negative).
     """
-    start = float(np.median(load[: min(10, load.size)]))
-    dev = load - start
+    ok = ~load_spikes(load)                 # a glitch or an over-range code decides nothing
+    start = float(np.median(load[ok][: min(10, int(ok.sum()))])) if ok.any() else 0.0
+    dev = np.where(ok, load - start, 0.0)
     k = int(np.argmax(np.abs(dev)))
     scale = float(np.median(np.abs(np.diff(load)))) if load.size > 2 else 0.0
     clear = abs(dev[k]) > 10 * scale and dev[k] != 0
