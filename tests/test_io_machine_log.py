@@ -332,3 +332,17 @@ def test_fixture_files_are_small():
     """Fixtures stay a few dozen rows (the real export is the one large file)."""
     for f in LOGS.glob("*.[ct]sv"):
         assert os.path.getsize(f) < 4000, f
+
+
+def test_a_compression_table_written_positive_is_turned_and_said(tmp_path):
+    """Stress positive in compression (stretch < 1) had been fitted as written: mu = 0 Pa and
+    exit 0; the sign is the laws' now, and the modes turned are named."""
+    from bsipipe.mechanics.hyperelastic import ogden_nominal_stress
+    lam = np.linspace(1.0, 0.7, 16)
+    p_true = ogden_nominal_stress(lam, [720.0], [-4.7])               # negative in compression
+    text = "stretch,nominal_stress_pa\n" + "".join(f"{a:.4f},{-b:.6f}\n" for a, b in zip(lam, p_true))
+    t = read_stress_table(_table(tmp_path, text))
+    np.testing.assert_allclose(t["nominal_stress_pa"], p_true, atol=1e-6)
+    assert t.attrs["sign_turned"] == ["uniaxial"]
+    mixed = "stretch,nominal_stress_pa\n1.0,0\n0.9,-5\n1.1,-3\n"       # rows disagree: left as written
+    assert read_stress_table(_table(tmp_path, mixed, "mixed.csv")).attrs["sign_turned"] == []

@@ -279,7 +279,7 @@ def _read_tables(paths: Sequence[str], modes: Sequence[str], cfg: FitConfig):
                 raise InputError(f"no row within --max-strain {cfg.max_strain}", path=p)
         tables.append(t)
         inputs.append({"path": str(p), "speed_mm_s": None, "contact_mm": None, "n_points": int(len(t)),
-                       "modes": sorted(set(t["mode"]))})
+                       "modes": sorted(set(t["mode"])), "stress_sign_turned": t.attrs.get("sign_turned", [])})
     return tables, inputs
 
 
@@ -433,6 +433,17 @@ def _spikes_left_out(input_info: list[dict]) -> list[dict]:
                 + ", ".join(f"{v:.4g} N" for v in sp["load_n"][:8]) + ")", log, path=str(info["path"]),
                 lines=sp["lines"]))
     return out
+
+
+def _stress_sign_turned(input_info: list[dict]) -> list[dict]:
+    """``stress-sign`` warnings: a table that wrote its loaded rows with the sign opposite to the
+    laws' (compression positive) is fitted with its sign turned, and said so."""
+    from ..quality import warning
+    return [warning("stress-sign", f"fit-ogden: {Path(info['path']).name}: every loaded {', '.join(info['stress_sign_turned'])} "
+                    "row has the stress's sign opposite to its strain's (compression written positive): fitted with "
+                    "the sign turned (tension positive, compression negative)", log, path=str(info["path"]),
+                    modes=info["stress_sign_turned"])
+            for info in input_info if info.get("stress_sign_turned")]
 
 
 def _baseline_ignored(input_info: list[dict], data) -> list[dict]:
@@ -627,6 +638,8 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
     result["warnings"] = _fit_quality(final)
     if kind == "logs":
         result["warnings"] += _spikes_left_out(input_info)
+    else:
+        result["warnings"] += _stress_sign_turned(input_info)
     if kind == "logs" and not spec.baseline_drift:
         result["warnings"] += _baseline_ignored(input_info, data)
     if kind == "logs" and spec.compliance:

@@ -137,9 +137,32 @@ def read_stress_table(path: str | os.PathLike, mode: str | None = None) -> pd.Da
         if m != "simple-shear" and lam <= 0:
             raise InputError(f"stretch {rows[k][j_stretch]!r} is not positive ({m} needs a "
                              f"stretch > 0)", path=path, line=int(line_no[k]))
+    stress, turned = _stress_sign(stretch, stress, np.asarray(modes))
     out = pd.DataFrame({"stretch": stretch, "nominal_stress_pa": stress, "mode": modes})
-    out.attrs.update(path=path, lines=line_no.tolist(), stress_unit=stress_unit)
+    out.attrs.update(path=path, lines=line_no.tolist(), stress_unit=stress_unit, sign_turned=turned)
     return out
+
+
+def _stress_sign(stretch: np.ndarray, stress: np.ndarray, modes: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    """The stress with the sign the laws use -- positive in tension (stretch > 1, or gamma >
+    0 in simple shear), negative in compression -- and the modes whose table wrote every
+    loaded row with the other sign (compression positive, as many compression rigs and papers
+    do), which are turned.  A mode whose rows disagree among themselves is left as written.
+
+    >>> _stress_sign(np.array([1.0, 0.9, 0.8]), np.array([0.0, 10.0, 25.0]), np.array(["uniaxial"] * 3))
+    (array([  0., -10., -25.]), ['uniaxial'])
+    """
+    out = stress.copy()
+    turned = []
+    for m in dict.fromkeys(modes.tolist()):
+        rows = modes == m
+        strain = stretch[rows] - (0.0 if m == "simple-shear" else 1.0)
+        agree = np.sign(strain) * np.sign(stress[rows])
+        loaded = agree != 0
+        if loaded.any() and np.all(agree[loaded] < 0):
+            out[rows] = 0.0 - stress[rows]            # (an unloaded 0 stays 0, not -0)
+            turned.append(m)
+    return out, turned
 
 
 def _header_delimiter(line: str):
