@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from bsipipe.imaging.smooth import CRB_FACTOR, LOG_Q_GRID, SCALE_GRID, smooth_tracks
+from bsipipe.imaging.smooth import CRB_FACTOR, LOG_Q_GRID, REFERENCE_INTERVAL_S, SCALE_GRID, smooth_tracks
 
 
 def _track(x, y, snr, t, marker="M1", view="cam1"):
@@ -283,15 +283,17 @@ def test_smooth_tracks_matches_the_reference_fit_per_track():
     assert [(m.view, m.marker) for m in models] == [(v, f"M{j}") for v in ("cam1", "cam2", "cam3") for j in range(4)]
     assert out.loc[out.marker == "short", "x_px_smooth"].isna().all()
     assert sum(m.n_outliers for m in models) >= 3           # the spikes were left out, their tracks refitted
-    assert min(m.q_px2_per_s3 for m in models) == 10.0 ** LOG_Q_GRID[0]     # the static track: fine window clipped
+    assert min(m.q_px2_per_s3 for m in models) == 10.0 ** LOG_Q_GRID[0]     # the static track (cam1/2, 2 frames/s): fine window clipped
     for m in models:
         tr = out[(out.view == m.view) & (out.marker == m.marker)].sort_values("frame")
-        t = tr.time_s.to_numpy()
+        # the grid is searched with time rescaled to REFERENCE_INTERVAL_S per median frame interval
+        u = REFERENCE_INTERVAL_S / float(np.median(np.diff(tr.time_s.to_numpy())))
+        t = tr.time_s.to_numpy() * u
         use = tr.x_px.notna() & ~tr.smooth_outlier
         z = np.where(use.to_numpy()[:, None], tr[["x_px", "y_px"]].to_numpy(), np.nan)
         r = np.where(use, CRB_FACTOR / tr.snr.to_numpy(), 1.0) ** 2
         q, s = _ref_fit(t, z, r)
-        assert (m.q_px2_per_s3, m.error_scale) == (q, s), (m.view, m.marker)
+        assert (m.q_px2_per_s3, m.error_scale) == (q * u ** 3, s), (m.view, m.marker)
         seen = np.flatnonzero(use)
         rows = tr.x_px.notna().to_numpy() & (np.arange(len(tr)) >= seen[0]) & (np.arange(len(tr)) <= seen[-1])
         for a, col in enumerate(("x_px_smooth", "y_px_smooth")):
@@ -341,3 +343,22 @@ def test_stereo_error_check_finds_what_the_error_model_misses():
     assert out["A"]["scale_raw"] == pytest.approx(5.0, rel=0.15)
     assert 1.0 <= out["B"]["scale_smooth"] < 1.2
     assert out["C"]["n_points"] == 6 and out["C"]["scale_smooth"] == 1.0
+
+
+def test_the_same_frames_are_smoothed_alike_at_any_frame_rate():
+    """The q grid had been fixed in px^2/s^3: at 0.001 frames/s nothing was smoothed (and an
+    overflow warning leaked), at 10,000 frames/s the track was over-smoothed with too small an
+    sd.  Time is now rescaled to 2 frames/s for the search: the smoothed track is the same at
+    any rate, and q is reported in px^2/s^3 of the real rate."""
+    import warnings
+    tab, xt, yt, sd = _smooth_motion(seed=1)
+    ref, ref_models = smooth_tracks(tab)
+    for fps in (0.001, 0.01, 30.0, 10000.0):
+        t2 = tab.copy()
+        t2["time_s"] = tab["time_s"] * (2.0 / fps)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            out, models = smooth_tracks(t2)
+        for c in ("x_px_smooth", "y_px_smooth", "sd_px_smooth"):
+            np.testing.assert_allclose(out[c], ref[c], rtol=1e-9, atol=1e-9)
+        assert models[0].q_px2_per_s3 == pytest.approx(ref_models[0].q_px2_per_s3 * (fps / 2.0) ** 3, rel=1e-9)

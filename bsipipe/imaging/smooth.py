@@ -34,7 +34,8 @@ background is not white noise); :math:`q` is large where the motion is abrupt, a
 smoother then follows the data.  A frame where the marker was not found is bridged by the
 model but keeps no smoothed value (the table says where the marker was seen).
 
-Grids cover :math:`\log_{10} q \in [-6, 6]` (steps of 0.25) and :math:`s \in [0.5, 32]` (25
+Grids cover :math:`\log_{10} q \in [-6, 6]` (steps of 0.25; px^2/s^3 at 2 frames/s, the
+time rescaled to that rate for any other, so the same frames are smoothed alike at any rate) and :math:`s \in [0.5, 32]` (25
 steps of :math:`2^{1/4}`; a lossy codec's frames have lost the pixel noise the SNR is measured
 from, and their centres scatter up to about 20 times :math:`0.798/\mathrm{SNR}`), searched coarse to fine (every 4th q and 2nd s, then the full grid near each track's
 best).  Each pass is one Kalman recursion over time whose every step is a few vectorised
@@ -54,6 +55,9 @@ import pandas as pd
 #: The Cramer-Rao factor: per-axis sd of a Gaussian spot's centre = CRB_FACTOR / SNR.
 CRB_FACTOR = float(np.sqrt(2.0 / np.pi))
 LOG_Q_GRID = np.arange(-6.0, 6.0001, 0.25)
+#: The grid of q is in px^2/s^3 for frames this far apart (the C-arms' 2 frames/s); other
+#: rates are searched on the same grid with time rescaled to it (q reported in px^2/s^3).
+REFERENCE_INTERVAL_S = 0.5
 SCALE_GRID = np.geomspace(0.5, 32.0, 25)
 
 
@@ -357,7 +361,14 @@ def smooth_tracks(table: pd.DataFrame, *, log_q_grid=LOG_Q_GRID, scale_grid=SCAL
     for f in fits:
         clocks.setdefault(f.times.tobytes(), []).append(f)
     for group in clocks.values():
-        times = group[0].times
+        # time in units of REFERENCE_INTERVAL_S per frame interval: the q grid is searched in
+        # those units, so the same frames are smoothed the same whatever their rate (a grid
+        # fixed in px^2/s^3 had covered no useful q at 0.001 or 10,000 frames/s)
+        dts = np.diff(group[0].times)
+        unit = REFERENCE_INTERVAL_S / float(np.median(dts)) if dts.size else 1.0
+        times = group[0].times * unit
+        for f in group:
+            f.unit = unit
         for f, fit in zip(group, _fit_views(times, [f.Zu for f in group], [f.SDu for f in group], qs, scales)):
             f.q, f.s, f.xs, f.var = fit
             # a bad centre is left out and its track refitted
@@ -391,7 +402,7 @@ def smooth_tracks(table: pd.DataFrame, *, log_q_grid=LOG_Q_GRID, scale_grid=SCAL
             if has[a]:
                 models.append(TrackSmoothing(
                     view=str(f.view), marker=str(f.markers[j]), n_points=int(seen[:, a].sum()),
-                    q_px2_per_s3=float(f.q[a]), error_scale=float(f.s[a]),
+                    q_px2_per_s3=float(f.q[a] * f.unit ** 3), error_scale=float(f.s[a]),
                     raw_sd_px=float(np.median(f.SD[seen[:, a], j]) * f.s[a]),
                     smooth_sd_px=float(np.median(np.sqrt(f.var[seen[:, a], a]))),
                     n_outliers=int(f.outlier[:, a].sum())))
