@@ -67,3 +67,25 @@ def test_stated_errors_match_the_truth(tracked):
     t2r = t2[(t2["marker"] == "R1") & (t2["view"] == "cam1")]
     assert r1["stereo_scale_smooth"] == pytest.approx(sc["markers"]["R1"]["scale_smooth"])
     assert r1["smooth_sd_px"] == pytest.approx(float(t2r["sd_px_smooth"].median()), rel=0.05)
+
+
+def test_a_sequence_too_short_to_smooth_is_triangulated_from_its_raw_centres(tmp_path):
+    """Under 5 frames no track is smoothed: the 3-D table had been written with empty x_mm,
+    y_mm, z_mm (exit 0, no word); the raw centres are triangulated instead and named."""
+    from test_track_twin import truth_calibration
+    (tmp_path / "synth.yaml").write_text(yaml.safe_dump({**TWIN, "sequence": {"n_frames": 4}}))
+    r = CliRunner().invoke(cli, ["-q", "synth", str(tmp_path / "synth.yaml"), "-o", str(tmp_path / "synth")])
+    assert r.exit_code == 0, r.output
+    s = tmp_path / "synth"
+    (tmp_path / "calibration.json").write_text(json.dumps(truth_calibration(json.loads((s / "truth.json").read_text()))))
+    r = CliRunner().invoke(cli, ["-q", "track", "--view", f"cam1={s / 'sequence/cam1'}", "--view",
+                                 f"cam2={s / 'sequence/cam2'}", "--seeds", str(s / "seeds.csv"), "--calibration",
+                                 str(tmp_path / "calibration.json"), "--fps", "2", "-o", str(tmp_path / "track")])
+    assert r.exit_code == 0, r.output
+    p3 = pd.read_csv(tmp_path / "track" / "markers3d.csv")
+    two = p3[p3["n_views"] == 2]
+    assert len(two) >= 0.9 * len(p3) and two[["x_mm", "y_mm", "z_mm"]].notna().all().all()
+    np.testing.assert_array_equal(two["x_mm"], two["x_mm_raw"])
+    d = json.loads((tmp_path / "track" / "track.json").read_text())
+    assert d["summary"]["n_two_view"] == len(two)
+    assert len(d["smoothing"]["raw_tracks_triangulated"]) == 2 * p3["marker"].nunique()

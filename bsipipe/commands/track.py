@@ -535,7 +535,7 @@ def _stereo_check(table: pd.DataFrame, points3d: pd.DataFrame, vpair, pair, trac
             t["stereo_scale_raw"], t["stereo_scale_smooth"] = r["scale_raw"], r["scale_smooth"]
     scaled = {m: round(r["scale_smooth"], 2) for m, r in per.items() if r["scale_smooth"] > 1.0}
     zs = [r["z_rms_smooth"] for r in per.values() if r["n_points"]]
-    if per:
+    if zs:
         log.info("track: stereo check of the error model: ray-gap z RMS of the smoothed centres %.2f-%.2f over %d "
                  "markers; sd scaled where above 1 (%s)", min(zs), max(zs), len(zs),
                  ", ".join(f"{m} x{k:g}" for m, k in scaled.items()) or "none")
@@ -1005,8 +1005,14 @@ def _smoothed_points(table: pd.DataFrame, st: dict, smoothing: dict, max_offset_
     fit, vpair = st["fit"], st["vpair"]
     sub = table[table["view"].isin(pair)].copy()
     ok = sub["x_px_smooth"].notna() & sub["y_px_smooth"].notna()
-    sub["x_px"], sub["y_px"] = sub["x_px_smooth"], sub["y_px_smooth"]
-    sub["found"] = sub["found"].astype(bool) & ok
+    # a track too short to smooth (fewer than smooth_tracks' min_points) keeps its raw centres:
+    # with under 5 frames no track is smoothed, and the 3-D table had been left empty
+    smoothed = ok.groupby([sub["view"], sub["marker"]]).transform("any")
+    sub["x_px"] = sub["x_px_smooth"].where(smoothed, sub["x_px"])
+    sub["y_px"] = sub["y_px_smooth"].where(smoothed, sub["y_px"])
+    sub["found"] = sub["found"].astype(bool) & (ok | ~smoothed)
+    smoothing["raw_tracks_triangulated"] = sorted({f"{v}:{m}" for v, m in sub.loc[~smoothed, ["view", "marker"]]
+                                                   .itertuples(index=False)})
     if st["time_unit"] == "frame":
         sub["time_s"] = sub["frame"].astype(float)
     sdata = stereo_data(sub, vpair)
