@@ -383,6 +383,21 @@ def _xray_seeds(tmp_path) -> Path:
     return p
 
 
+@pytest.mark.parametrize("given", ["--diameter-px", "--polarity"])
+def test_a_diameter_wider_than_a_sixteenth_of_the_frame_is_refused_at_once(tmp_path, given):
+    """--diameter-px 100 on 1024 px frames had run for minutes without a word (a top-hat that
+    wide on whole frames); it is exit 2 naming the limit, before any frame is tracked (also
+    with the polarity given, where the first frames had not been read)."""
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    (frames / "sample_frame.jpg").write_bytes((XRAY / "sample_frame.jpg").read_bytes())
+    extra = ["--polarity", "dark"] if given == "--polarity" else []
+    r = CliRunner().invoke(cli, ["track", "--view", f"cam1={frames}", "--diameter-px", "100", *extra,
+                                 "-o", str(tmp_path / "out")])
+    assert r.exit_code == 2 and "1/16" in r.output and "diameter" in r.output, r.output
+    assert not (tmp_path / "out").exists()
+
+
 def test_cli_track_real_frame(tmp_path):
     """The contract's 2-D form on the real X-ray frame: markers2d.csv, XMALab 2-D file that
     reads back, track.json with per-marker SNR, events and provenance, the figures."""

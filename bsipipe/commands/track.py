@@ -678,6 +678,27 @@ def _check_frame_sizes(rig, pair, shapes: dict, path) -> None:
                              path=path)
 
 
+#: The widest marker tracked, as a share of the frame's shorter side: a top-hat that wide on
+#: a whole frame takes minutes (a 100 px diameter on 1024 x 1024 frames ran for more than 3)
+#: and finds regions, not markers.
+MAX_DIAMETER_SHARE = 1.0 / 16.0
+
+
+def _check_diameter(cfg, shapes: dict, config_path) -> None:
+    """A given marker diameter wider than :data:`MAX_DIAMETER_SHARE` of a view's frame is
+    exit 2, before any frame is tracked."""
+    d = cfg.diameter_px
+    if d is None:
+        return
+    for v, shape in shapes.items():
+        dv = float(d[v]) if isinstance(d, dict) else float(d)
+        if shape is not None and dv > MAX_DIAMETER_SHARE * min(shape[:2]):
+            raise InputError(f"view {v}: a marker diameter of {dv:g} px is more than 1/16 of its "
+                             f"{shape[1]} x {shape[0]} frames ({MAX_DIAMETER_SHARE * min(shape[:2]):g} px): give the "
+                             "markers' diameter in px (X-ray beads are a few px), or leave it out to have it "
+                             "measured", path=config_path, key="diameter_px")
+
+
 def _marker_size(cfg, views, firsts: dict, seed_df, rois: dict):
     """The markers' polarity and diameter, given or estimated from the first frames.  Returns
     ``(cfg with the polarity, (polarity source, counts or None), (diameter, per view, source))``.
@@ -1102,11 +1123,10 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
             raise InputError(f"view {v}: no such file or folder", path=p)
     # each view's first frame, for the seeds' check, the polarity and the diameter (then let go)
     given_roi = _given_roi(cfg)
-    firsts = (_first_frames(cfg.views, cfg.channel)
-              if cfg.seeds or cfg.polarity == "auto" or cfg.diameter_px is None or cfg.calibration
-              or given_roi else {})
+    firsts = _first_frames(cfg.views, cfg.channel)
     shapes = {v: None if im is None else im.shape for v, im in firsts.items()}
     rois = _resolve_rois(cfg, shapes, config_path) if given_roi else _roi_per_view(cfg)
+    _check_diameter(cfg, shapes, config_path)
     rig = pair = None
     if cfg.calibration:
         rig, pair = _read_calibration(cfg.calibration, views)
