@@ -151,7 +151,8 @@ def atomic_write_bytes(path: str | os.PathLike, data) -> None:
 
 def check_output_folder(out: str | os.PathLike) -> None:
     """Refuse, before any work, an output folder that cannot be made: the path or one of its
-    parents is a file, or the nearest existing folder is not writable (an InputError naming
+    parents is a file, or the nearest existing folder is not writable or takes no new folder
+    (an InputError naming
     it; found only when the results are written, after the work, it had been an internal
     error)."""
     from .errors import InputError
@@ -164,6 +165,13 @@ def check_output_folder(out: str | os.PathLike) -> None:
                 raise InputError(f"cannot make the output folder {p}: {parent} is a file", path=parent)
             if not os.access(parent, os.W_OK | os.X_OK):
                 raise InputError(f"cannot make the output folder {p}: {parent} is not writable", path=parent)
+            # the permission bits can say yes where the file system says no (/proc, a read-only
+            # mount, a full disk): a folder is made there and removed again
+            import tempfile
+            try:
+                os.rmdir(tempfile.mkdtemp(prefix=".bsipipe-probe-", dir=parent))
+            except OSError as e:
+                raise InputError(f"cannot make the output folder {p}: {e.strerror or e}", path=parent) from None
             return
 
 

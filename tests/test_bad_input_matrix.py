@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -855,3 +856,15 @@ def test_output_folder_under_a_file_is_refused_before_the_work(tmp_path, command
     r = CliRunner().invoke(cli, [*args, "-o", str(tmp_path / "afile" / "sub")])
     assert r.exit_code == 2 and f"{tmp_path / 'afile'} is a file" in r.output, r.output
     assert "internal error" not in r.output and (tmp_path / "afile").read_text() == "a file, not a folder\n"
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux's /proc")
+def test_output_folder_the_file_system_refuses_is_exit_2(tmp_path):
+    """-o /proc/x: the permission bits say writable (as root) but no folder can be made there;
+    it had been an internal error, exit 1."""
+    from click.testing import CliRunner
+
+    from bsipipe.cli import cli
+    r = CliRunner().invoke(cli, [*FIT, str(GOOD_LOG), "-o", "/proc/bsipipe-test-out"])
+    assert r.exit_code == 2 and "cannot make the output folder" in r.output, r.output
+    assert "internal error" not in r.output and not list(tmp_path.iterdir())
