@@ -22,6 +22,20 @@ import pandas as pd
 from ..errors import InputError
 
 
+def _separator(path) -> str:
+    """The seeds file's field separator: ``,``, or the ``;`` (a European spreadsheet's export)
+    or tab its header uses instead."""
+    try:
+        with open(path, encoding="utf-8-sig", errors="replace") as f:
+            head = f.readline()
+    except OSError:
+        return ","          # read_csv says what is wrong with the file
+    for sep in (";", "\t"):
+        if sep in head and "," not in head:
+            return sep
+    return ","
+
+
 def read_seeds(path, views: Sequence[str], frame_shapes: dict | None = None) -> pd.DataFrame:
     """``seeds.csv`` (``view,marker,x_px,y_px``) or an XMALab 2-D CSV (first row; ``camN``
     is the N-th view).  Errors name the file and line.  ``frame_shapes`` (view -> (h, w)):
@@ -49,7 +63,7 @@ def read_seeds(path, views: Sequence[str], frame_shapes: dict | None = None) -> 
         x.attrs["later"] = later
         return x
     try:
-        df = pd.read_csv(path, dtype={"view": str, "marker": str})
+        df = pd.read_csv(path, dtype={"view": str, "marker": str}, sep=_separator(path))
     except FileNotFoundError:
         raise InputError("file not found", path=path) from None
     except (OSError, ValueError, pd.errors.ParserError, UnicodeDecodeError) as e:
@@ -71,6 +85,11 @@ def read_seeds(path, views: Sequence[str], frame_shapes: dict | None = None) -> 
             i = int(np.flatnonzero(df[c].isna().to_numpy())[0])
             raise InputError(f"empty {c}", path=path, line=i + 2)
         df[c] = df[c].astype(str).str.strip()
+    odd = np.flatnonzero(df["marker"].str.contains('[,"]', regex=True).to_numpy())
+    if len(odd):
+        raise InputError(f"marker name {df['marker'].iloc[odd[0]]!r} holds a comma or a quote, which XMALab's "
+                         "CSV layouts (xmalab_2d.csv, xmalab_3d.csv) cannot hold: rename it", path=path,
+                         line=int(odd[0]) + 2)
     unknown = sorted(set(df["view"]) - set(views))
     if unknown:
         raise InputError(f"seeds for unknown view(s) {', '.join(unknown)}; the views are {', '.join(views)}",
