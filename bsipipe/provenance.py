@@ -12,7 +12,7 @@ import shutil
 import sys
 import tempfile
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 
@@ -188,9 +188,13 @@ class ResultSet:
     ['b.txt']
     """
 
-    def __init__(self, out: str | os.PathLike, primary: str | None = None):
+    def __init__(self, out: str | os.PathLike, primary: str | None = None, outputs: Sequence[str] = ()):
         self.out = Path(out)
         self.primary = primary
+        # every file the command can write: one an earlier run left that this run does not
+        # write is removed at commit (a 2-D run into a folder that holds a 3-D run's
+        # markers3d.csv must not leave it beside its own results)
+        self.outputs = tuple(outputs)
         # bytes, or (for tables) an anonymous temporary file: a long sequence's CSV tables
         # then wait on disk, not in memory (unlinked at creation, so a kill leaves nothing)
         self.files: dict[str, Any] = {}
@@ -225,6 +229,9 @@ class ResultSet:
 
     def commit(self) -> list[Path]:
         self.out.mkdir(parents=True, exist_ok=True)
+        for n in self.outputs:
+            if n not in self.files and (self.out / n).is_file():
+                (self.out / n).unlink()
         names = sorted(self.files, key=lambda n: (n == self.primary, n))
         written = []
         for n in names:

@@ -1265,3 +1265,20 @@ def test_cli_names_frames_without_their_picture(tmp_path):
     assert _frames_without_markers(tab) == {"cam1": [3]}
     tab.loc[tab["frame"] == 3, "status"] = "missing-frame"
     assert _frames_without_markers(tab) == {}
+
+
+def test_a_rerun_removes_what_an_earlier_run_left_and_it_does_not_write(tmp_path):
+    """A 2-D run into a folder holding a 3-D run's markers3d.csv, xmalab_3d.csv and loop.md had
+    left them beside its own results (register would read them as this run's)."""
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    (frames / "sample_frame.jpg").write_bytes((XRAY / "sample_frame.jpg").read_bytes())
+    out = tmp_path / "out"
+    out.mkdir()
+    for n in ("markers3d.csv", "xmalab_3d.csv", "loop.md", "notes.txt"):
+        (out / n).write_text("from an earlier run\n")
+    r = CliRunner().invoke(cli, ["track", "--view", f"cam1={frames}", "--polarity", "dark", "--diameter-px", "4",
+                                 "--seeds", str(_xray_seeds(tmp_path)), "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    assert not any((out / n).exists() for n in ("markers3d.csv", "xmalab_3d.csv", "loop.md"))
+    assert (out / "notes.txt").exists() and (out / "markers2d.csv").exists()      # a user's own file stays

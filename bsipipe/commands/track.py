@@ -1101,6 +1101,12 @@ def _add_figures(rs, table: pd.DataFrame, points3d, first_images: dict, info: di
     rs.add_figure("overlay.png", overlay_figure(first_images, table, first, seed_df, per_view_d, regions), tight=False)
 
 
+#: Every file track writes (one an earlier run left in the folder that this run does not
+#: write is removed: a 2-D run does not write markers3d.csv, xmalab_3d.csv, loop.md).
+TRACK_OUTPUTS = ("markers2d.csv", "xmalab_2d.csv", "markers3d.csv", "xmalab_3d.csv", "loop.md", "track.png",
+                 "overlay.png", "track.json")
+
+
 def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diameter_px=None, seeds=None,
         fps=None, loop=None, progress: bool = False, **extra) -> dict:
     """The whole command; returns the ``track.json`` content (already written to ``out``).
@@ -1198,7 +1204,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
                 raise InputError(str(e), key="lowpass_hz") from None
         warnings += _ray_gap_warnings(points3d, cfg.max_ray_gap_mm)
 
-    rs = ResultSet(out, primary="track.json")
+    rs = ResultSet(out, primary="track.json", outputs=TRACK_OUTPUTS)
     cols2d = ["view", "frame", "marker", "x_px", "y_px", "time_s", "found", "status", "snr", "amplitude",
               "area_px", "sigma_px", "pred_x_px", "pred_y_px", "gate_px"]
     if "shift_x_px" in table:
