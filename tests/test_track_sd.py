@@ -89,3 +89,19 @@ def test_a_sequence_too_short_to_smooth_is_triangulated_from_its_raw_centres(tmp
     d = json.loads((tmp_path / "track" / "track.json").read_text())
     assert d["summary"]["n_two_view"] == len(two)
     assert len(d["smoothing"]["raw_tracks_triangulated"]) == 2 * p3["marker"].nunique()
+
+
+def test_two_frames_without_seeds_say_why_nothing_was_paired(tmp_path):
+    """Automatic tracks need 3 frames: with 2 and a calibration the message had blamed the seeds
+    (none given) and exited 2; it is a processing failure that names the minimum."""
+    from test_track_twin import truth_calibration
+    (tmp_path / "synth.yaml").write_text(yaml.safe_dump({**TWIN, "sequence": {"n_frames": 2}}))
+    r = CliRunner().invoke(cli, ["-q", "synth", str(tmp_path / "synth.yaml"), "-o", str(tmp_path / "synth")])
+    assert r.exit_code == 0, r.output
+    s = tmp_path / "synth"
+    (tmp_path / "calibration.json").write_text(json.dumps(truth_calibration(json.loads((s / "truth.json").read_text()))))
+    r = CliRunner().invoke(cli, ["-q", "track", "--view", f"cam1={s / 'sequence/cam1'}", "--view",
+                                 f"cam2={s / 'sequence/cam2'}", "--calibration", str(tmp_path / "calibration.json"),
+                                 "--fps", "2", "-o", str(tmp_path / "track")])
+    assert r.exit_code == 1 and "at least 3" in r.output and "seeds must" not in r.output, r.output
+    assert not (tmp_path / "track").exists()

@@ -931,8 +931,16 @@ def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, 
                                     workers=decode_workers(),
                                     rois={v: rois[v] for v in pair if isinstance(rois.get(v), FieldOfView)})
     if not data.markers:
-        raise InputError(f"no marker is tracked in both {pair[0]} and {pair[1]} (the seeds must use the same "
-                         "marker names in both views)", path=cfg.seeds)
+        if seed_df is not None:
+            raise InputError(f"no marker is tracked in both {pair[0]} and {pair[1]} (the seeds must use the same "
+                             "marker names in both views)", path=cfg.seeds)
+        n = int(table["frame"].nunique())
+        raise ProcessingError(f"no automatic track of {pair[0]} was paired with one of {pair[1]} by their ray gaps"
+                              + (f": {n} frame(s); automatic tracks need at least "
+                                 f"{cfg.tracking.min_track_frames} (give seeds for shorter sequences)"
+                                 if n < cfg.tracking.min_track_frames else
+                                 " (check the calibration's camera names and the views)"),
+                              path=cfg.views[pair[0]])
     if seed_df is not None:
         # a marker seeded in one of the two views has no 3-D point: said, not left out silently
         names = {v: list(dict.fromkeys(seed_df.loc[seed_df["view"] == v, "marker"])) for v in pair}
