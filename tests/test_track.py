@@ -1282,3 +1282,16 @@ def test_a_rerun_removes_what_an_earlier_run_left_and_it_does_not_write(tmp_path
     assert r.exit_code == 0, r.output
     assert not any((out / n).exists() for n in ("markers3d.csv", "xmalab_3d.csv", "loop.md"))
     assert (out / "notes.txt").exists() and (out / "markers2d.csv").exists()      # a user's own file stays
+
+
+def test_a_calibration_of_one_camera_for_two_views_names_the_missing_one(tmp_path):
+    """It had said only that the calibration has no 'stereo' block."""
+    for v in ("cam1", "cam2"):
+        (tmp_path / v).mkdir()
+        (tmp_path / v / "sample_frame.jpg").write_bytes((XRAY / "sample_frame.jpg").read_bytes())
+    cal = tmp_path / "calibration.json"
+    cal.write_text(json.dumps({"views": {"cam1": {}}}))
+    r = CliRunner().invoke(cli, ["track", "--view", f"cam1={tmp_path / 'cam1'}", "--view", f"cam2={tmp_path / 'cam2'}",
+                                 "--polarity", "dark", "--diameter-px", "4", "--calibration", str(cal),
+                                 "-o", str(tmp_path / "out")])
+    assert r.exit_code == 2 and "no cam2" in r.output and "calibration.json" in r.output, r.output

@@ -438,6 +438,13 @@ def _read_calibration(path, views: Sequence[str]):
         raise InputError(f"cannot read the calibration: {e}", path=path) from None
     st = cal.get("stereo") if isinstance(cal, dict) else None
     if not st or "views" not in st:
+        cams = cal.get("views") if isinstance(cal, dict) else None
+        named = sorted(cams) if isinstance(cams, dict) else []
+        missing = [v for v in views if v not in named]
+        if named and missing:
+            raise InputError(f"the calibration has camera(s) {', '.join(named)} and no {', '.join(missing)} (nor a "
+                             "'stereo' block): 3-D needs the views calibrated together (bsipipe calibrate --stereo)",
+                             path=path)
         raise InputError("the calibration has no 'stereo' block: 3-D needs two views calibrated together", path=path)
     pair = tuple(st["views"])
     if not set(pair) <= set(views):
