@@ -23,18 +23,25 @@ TWIN = {"seed": 0, "calibration": {"views": 0, "stereo_views": 0},
         "sequence": {"n_frames": 60}}
 
 
-@pytest.fixture(scope="module")
-def tracked(tmp_path_factory):
+def _twin_tracked(root, n_frames: int, seeds: bool = True):
+    """The twin of ``n_frames`` frames rendered into ``root/synth`` with its true cameras as
+    ``root/calibration.json``, and ``bsipipe track``'s result on it (``root/track``)."""
     from test_track_twin import truth_calibration
-    root = tmp_path_factory.mktemp("track_sd")
-    (root / "synth.yaml").write_text(yaml.safe_dump(TWIN))
+    (root / "synth.yaml").write_text(yaml.safe_dump({**TWIN, "sequence": {"n_frames": n_frames}}))
     r = CliRunner().invoke(cli, ["-q", "synth", str(root / "synth.yaml"), "-o", str(root / "synth")])
     assert r.exit_code == 0, r.output
     s = root / "synth"
     (root / "calibration.json").write_text(json.dumps(truth_calibration(json.loads((s / "truth.json").read_text()))))
-    r = CliRunner().invoke(cli, ["-q", "track", "--view", f"cam1={s / 'sequence/cam1'}", "--view",
-                                 f"cam2={s / 'sequence/cam2'}", "--seeds", str(s / "seeds.csv"), "--calibration",
-                                 str(root / "calibration.json"), "--fps", "2", "-o", str(root / "track")])
+    return CliRunner().invoke(cli, ["-q", "track", "--view", f"cam1={s / 'sequence/cam1'}", "--view",
+                                    f"cam2={s / 'sequence/cam2'}", *(["--seeds", str(s / "seeds.csv")] if seeds else []),
+                                    "--calibration", str(root / "calibration.json"), "--fps", "2",
+                                    "-o", str(root / "track")])
+
+
+@pytest.fixture(scope="module")
+def tracked(tmp_path_factory):
+    root = tmp_path_factory.mktemp("track_sd")
+    r = _twin_tracked(root, TWIN["sequence"]["n_frames"])
     assert r.exit_code == 0, r.output
     return root
 
@@ -72,15 +79,7 @@ def test_stated_errors_match_the_truth(tracked):
 def test_a_sequence_too_short_to_smooth_is_triangulated_from_its_raw_centres(tmp_path):
     """Under 5 frames no track is smoothed: the 3-D table had been written with empty x_mm,
     y_mm, z_mm (exit 0, no word); the raw centres are triangulated instead and named."""
-    from test_track_twin import truth_calibration
-    (tmp_path / "synth.yaml").write_text(yaml.safe_dump({**TWIN, "sequence": {"n_frames": 4}}))
-    r = CliRunner().invoke(cli, ["-q", "synth", str(tmp_path / "synth.yaml"), "-o", str(tmp_path / "synth")])
-    assert r.exit_code == 0, r.output
-    s = tmp_path / "synth"
-    (tmp_path / "calibration.json").write_text(json.dumps(truth_calibration(json.loads((s / "truth.json").read_text()))))
-    r = CliRunner().invoke(cli, ["-q", "track", "--view", f"cam1={s / 'sequence/cam1'}", "--view",
-                                 f"cam2={s / 'sequence/cam2'}", "--seeds", str(s / "seeds.csv"), "--calibration",
-                                 str(tmp_path / "calibration.json"), "--fps", "2", "-o", str(tmp_path / "track")])
+    r = _twin_tracked(tmp_path, 4)
     assert r.exit_code == 0, r.output
     p3 = pd.read_csv(tmp_path / "track" / "markers3d.csv")
     two = p3[p3["n_views"] == 2]
@@ -94,14 +93,6 @@ def test_a_sequence_too_short_to_smooth_is_triangulated_from_its_raw_centres(tmp
 def test_two_frames_without_seeds_say_why_nothing_was_paired(tmp_path):
     """Automatic tracks need 3 frames: with 2 and a calibration the message had blamed the seeds
     (none given) and exited 2; it is a processing failure that names the minimum."""
-    from test_track_twin import truth_calibration
-    (tmp_path / "synth.yaml").write_text(yaml.safe_dump({**TWIN, "sequence": {"n_frames": 2}}))
-    r = CliRunner().invoke(cli, ["-q", "synth", str(tmp_path / "synth.yaml"), "-o", str(tmp_path / "synth")])
-    assert r.exit_code == 0, r.output
-    s = tmp_path / "synth"
-    (tmp_path / "calibration.json").write_text(json.dumps(truth_calibration(json.loads((s / "truth.json").read_text()))))
-    r = CliRunner().invoke(cli, ["-q", "track", "--view", f"cam1={s / 'sequence/cam1'}", "--view",
-                                 f"cam2={s / 'sequence/cam2'}", "--calibration", str(tmp_path / "calibration.json"),
-                                 "--fps", "2", "-o", str(tmp_path / "track")])
+    r = _twin_tracked(tmp_path, 2, seeds=False)
     assert r.exit_code == 1 and "at least 3" in r.output and "seeds must" not in r.output, r.output
     assert not (tmp_path / "track").exists()
