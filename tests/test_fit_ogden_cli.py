@@ -388,3 +388,13 @@ def test_a_glitch_or_an_over_range_sample_is_left_out_and_named(tmp_path, value)
     r = _invoke("fit-ogden", path, "--no-loop", "--bootstrap", "0", "-o", tmp_path / "out2")
     assert r.exit_code == 2 and "over-range" in r.output and "broken.csv" in r.output
     assert not (tmp_path / "out2").exists()
+
+
+@pytest.mark.parametrize("rows", ["1.0,0\n0.9,0\n0.8,0\n", "1.0,0\n1.0,5\n1.0,-3\n"])
+def test_a_table_with_nothing_loaded_is_exit_2(tmp_path, rows):
+    """All-zero stress, or every stretch 1, had ended in exit 1 with scipy's 'gtol termination
+    condition is satisfied' given as the reason the fit did not converge."""
+    p = tmp_path / "flat.csv"
+    p.write_text("stretch,nominal_stress_pa\n" + rows)
+    r = _invoke("fit-ogden", p, "--stress-stretch", "--no-loop", "-o", tmp_path / "out")
+    assert r.exit_code == 2 and "no loaded row" in r.output and "flat.csv" in r.output, r.output

@@ -273,6 +273,10 @@ def _read_tables(paths: Sequence[str], modes: Sequence[str], cfg: FitConfig):
     for i, p in enumerate(paths):
         mode = modes[i] if len(modes) == len(paths) else (modes[0] if modes else cfg.mode)
         t = read_stress_table(p, mode)
+        strain = t["stretch"] - np.where(t["mode"] == "simple-shear", 0.0, 1.0)
+        if not ((t["nominal_stress_pa"] != 0) & (strain != 0)).any():
+            raise InputError("no loaded row: every row has zero stress or zero strain (stretch 1, or gamma 0 in "
+                             "simple shear), so no law can be fitted", path=p)
         if cfg.max_strain is not None:
             t = t[np.abs(t["stretch"] - np.where(t["mode"] == "simple-shear", 0.0, 1.0)) <= cfg.max_strain]
             if t.empty:
