@@ -1295,3 +1295,32 @@ def test_a_calibration_of_one_camera_for_two_views_names_the_missing_one(tmp_pat
                                  "--polarity", "dark", "--diameter-px", "4", "--calibration", str(cal),
                                  "-o", str(tmp_path / "out")])
     assert r.exit_code == 2 and "no cam2" in r.output and "calibration.json" in r.output, r.output
+
+
+def test_where_the_times_come_from_is_said(tmp_path):
+    """--fps on a source with its own time stamps had been ignored without a word, and frames
+    with neither had left time_s empty without one."""
+    import cv2
+    img = cv2.imread(str(XRAY / "sample_frame.jpg"), cv2.IMREAD_GRAYSCALE)
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k in range(3):
+        cv2.imwrite(str(frames / f"f{k}.png"), img)
+    seeds = str(_xray_seeds(tmp_path))
+    base = ["track", "--polarity", "dark", "--diameter-px", "4", "--seeds", seeds]
+    r = CliRunner().invoke(cli, [*base, "--view", f"cam1={frames}", "-o", str(tmp_path / "a")])
+    assert r.exit_code == 0, r.output
+    j = json.loads((tmp_path / "a" / "track.json").read_text())
+    assert "no-frame-times" in [w["code"] for w in j["warnings"]]
+    assert j["views"]["cam1"]["time_source"].startswith("none")
+    video = tmp_path / "seq.avi"
+    w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 2.0, (img.shape[1], img.shape[0]), False)
+    for _ in range(3):
+        w.write(img)
+    w.release()
+    r = CliRunner().invoke(cli, [*base, "--view", f"cam1={video}", "--fps", "10", "-o", str(tmp_path / "b")])
+    assert r.exit_code == 0, r.output
+    j = json.loads((tmp_path / "b" / "track.json").read_text())
+    fw = [w for w in j["warnings"] if w["code"] == "fps-ignored"]
+    assert len(fw) == 1 and fw[0]["frames_per_s"]["cam1"] == pytest.approx(2.0, rel=0.01)
+    assert j["views"]["cam1"]["time_source"] == "the source's time stamps"

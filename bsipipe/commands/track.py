@@ -868,6 +868,28 @@ def _sequence_warnings(table: pd.DataFrame, events: list[dict], cfg, views, info
             + " frames/s): frames are paired by index, and only where the loop takes view-time-offset are "
               "one view's tracks interpolated to the other's times; 3-D points exist for the frame numbers "
               "both views hold, not for the whole of the longer recording", log, frames_per_s=rates))
+    # where each view's times come from: --fps is only for sources without time stamps
+    untimed = [v for v in views if not table.loc[table["view"] == v, "time_s"].notna().any()]
+    stamped = {v: r for v, r in rates.items()
+               if cfg.fps is not None and abs(r - cfg.fps) > 1e-3 * cfg.fps}
+    for v in views:
+        info.get(v, {})["time_source"] = ("none: no time stamps and no --fps" if v in untimed else
+                                          "the source's time stamps" if cfg.fps is None or v in stamped else
+                                          f"--fps {cfg.fps:g}")
+    if stamped:
+        out.append(warning(
+            "fps-ignored",
+            f"track: --fps {cfg.fps:g} is not used for " + ", ".join(f"{v} ({r:.4g} frames/s)" for v, r in
+                                                               stamped.items())
+            + ": the source's own time stamps are (give --fps only for frames without them)", log,
+            fps=cfg.fps, frames_per_s=stamped))
+    untimed = [v for v in untimed if table.loc[table["view"] == v, "frame"].nunique() > 1]   # one frame has no time to lose
+    if untimed:
+        out.append(warning(
+            "no-frame-times",
+            f"track: {', '.join(untimed)} {'has' if len(untimed) == 1 else 'have'} no time stamps and no --fps was given: time_s is left empty, and the "
+            "smoothing and the loop's view-time-offset work in frames; give --fps for times in seconds", log,
+            views=untimed))
     lossy = {v: c for v in views if (c := lossy_compression(cfg.views[v])) is not None}
     if lossy:
         out.append(warning(
