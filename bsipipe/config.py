@@ -8,6 +8,7 @@ and the file.  The validated model, defaults filled in, is what goes into proven
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 from typing import Any, Literal, TypeVar, get_args, get_origin
 
@@ -55,9 +56,20 @@ def _is_numeric(annotation) -> bool:
     return bool(meta) and any(_is_numeric(a) for a in meta)
 
 
+#: pydantic's names of the alternatives it tried (``constrained-float``, ``literal['auto','none']``,
+#: ``function-after[...]``, a bare ``float``), which it puts in an error's location among the keys
+_ALTERNATIVE = re.compile(r"^(constrained-\w+|[a-z]+(-[a-z]+)*\[.*\]|str|int|float|bool|none|dict|list|tuple|set)$")
+
+
+def _key_of(loc) -> str:
+    """The config key of an error location, without pydantic's names of union alternatives:
+    ``diameter_px.constrained-float`` is the key ``diameter_px``."""
+    return ".".join(str(p) for p in loc if not (isinstance(p, str) and _ALTERNATIVE.match(p)))
+
+
 def _format_validation_error(err: ValidationError) -> tuple[str, str]:
     e = err.errors()[0]
-    key = ".".join(str(p) for p in e.get("loc", ()))
+    key = _key_of(e.get("loc", ()))
     kind = e.get("type", "")
     if kind == "extra_forbidden":
         msg = "unknown key"
@@ -73,7 +85,7 @@ def _format_validation_error(err: ValidationError) -> tuple[str, str]:
     if rest:
         # the others by key, not just counted (a list given for a text key fails each of its
         # alternative types: one key, several problems)
-        keys = list(dict.fromkeys(".".join(str(p) for p in r.get("loc", ())) or "?" for r in rest))
+        keys = list(dict.fromkeys(_key_of(r.get("loc", ())) or "?" for r in rest))
         others = [k for k in keys if k != key]
         msg += (f"; and {len(rest)} more problem{'s' if len(rest) > 1 else ''}"
                 + (f" (key{'s' if len(others) > 1 else ''} {', '.join(repr(k) for k in others)})" if others else
