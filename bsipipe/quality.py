@@ -69,6 +69,15 @@ def warning(code: str, message: str, logger: logging.Logger | None = None, **det
 # --------------------------------------------------------------------------- fits
 
 
+def listed(items: Sequence, most: int, sep: str = ", ") -> str:
+    """The first ``most`` items for a message, and how many more.
+
+    >>> listed([4, 9, 12, 30], 2)
+    '4, 9 and 2 more'
+    """
+    return sep.join(map(str, items[:most])) + (f" and {len(items) - most} more" if len(items) > most else "")
+
+
 def correlation_matrix(cov) -> np.ndarray:
     """:math:`r_{ij} = C_{ij} / \\sqrt{C_{ii} C_{jj}}` (NaN where a variance is not positive)."""
     c = np.asarray(cov, float)

@@ -38,6 +38,7 @@ from pydantic import Field, PositiveFloat, ValidationInfo, field_validator
 
 from ..config import StrictModel, load_config, validate
 from ..errors import InputError, ProcessingError
+from ..quality import listed
 
 log = logging.getLogger(__name__)
 
@@ -265,7 +266,7 @@ def _check_sizes(sizes: dict) -> tuple[int, int]:
         for (wh, path, index, dt), v in zip(sizes.values(), values):
             if v != ref:
                 same = [os.path.basename(p) for (_, p, _, _), u in zip(sizes.values(), values) if u == ref]
-                like = ", ".join(same[:3]) + (f" and {len(same) - 3} more" if len(same) > 3 else "")
+                like = listed(same, 3)
                 got, want = ((f"is {wh[0]}x{wh[1]} px", f"{ref[0]}x{ref[1]} px") if what == "size" else
                              (f"has {_depth(dt)} pixels", _depth(ref)))
                 raise InputError(f"image {got}, expected {want} like the camera's other {len(same)} image(s) "
@@ -477,7 +478,7 @@ def _failures(rejected: dict[str, str], max_reasons: int = 3) -> str:
         by.setdefault(why, []).append(k)
     parts = []
     for why, keys in list(by.items())[:max_reasons]:
-        names = ", ".join(keys[:3]) + (f" and {len(keys) - 3} more" if len(keys) > 3 else "")
+        names = listed(keys, 3)
         parts.append(f"{names}: {why}")
     if len(by) > max_reasons:
         parts.append(f"{len(by) - max_reasons} other reason(s)")
@@ -537,8 +538,8 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
                 "duplicate-views",
                 f"calibrate: {name}: {len(copies)} image(s) identical to another of the camera's (a copied file, or one "
                 "folder given twice): each counted once, else they would weigh double and shrink the parameters' "
-                "spread: " + "; ".join(f"{k}: {first}" for k, first in list(copies.items())[:6])
-                + (f" and {len(copies) - 6} more" if len(copies) > 6 else ""), logger=log, view=name,
+                "spread: " + listed([f"{k}: {first}" for k, first in copies.items()], 6, sep="; "), logger=log,
+                view=name,
                 images={k: rejected[k] for k in copies}))
         if sizes:
             size[0] = _check_sizes(sizes)

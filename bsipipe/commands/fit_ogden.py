@@ -20,6 +20,7 @@ from pydantic import Field
 
 from ..config import FitConfig, load_config, validate
 from ..errors import InputError, ProcessingError
+from ..quality import listed
 
 log = logging.getLogger(__name__)
 
@@ -183,7 +184,7 @@ MAX_SPIKES = 5
 
 
 def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig, explicit: set):
-    from ..io.machine_log import load_spikes, read_machine_log
+    from ..io.machine_log import read_machine_log
     from ..mechanics.contact import ContactNotInRecord, detect_contact, loading_ramps
     from ..mechanics.fit import MIN_UNLOADED_SAMPLES, LogData
 
@@ -194,13 +195,13 @@ def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig, explicit: set):
         disp, force = ml.compression()
         time_s = ml.time_s
         rows = np.arange(len(ml))                # the record's sample of each one kept
-        spikes = load_spikes(ml.load_n)
+        spikes = ml.spikes
         record: dict = {"n_record": int(len(ml))}
         if spikes.any():
             lines = [ml.line_of(i) for i in np.flatnonzero(spikes)]
             if spikes.sum() > max(MAX_SPIKES, 0.01 * len(ml)):
                 raise InputError(f"{int(spikes.sum())} load samples are over-range codes (|F| >= 1e30) or "
-                                 f"single-sample spikes (lines {_lines_listed(lines)}): the load channel did not "
+                                 f"single-sample spikes (lines {listed(lines, 8)}): the load channel did not "
                                  "record a force there; check the export", path=p)
             keep = ~spikes
             rows, time_s, disp, force = rows[keep], time_s[keep], disp[keep], force[keep]
@@ -273,12 +274,12 @@ def _read_tables(paths: Sequence[str], modes: Sequence[str], cfg: FitConfig):
     for i, p in enumerate(paths):
         mode = modes[i] if len(modes) == len(paths) else (modes[0] if modes else cfg.mode)
         t = read_stress_table(p, mode)
-        strain = t["stretch"] - np.where(t["mode"] == "simple-shear", 0.0, 1.0)
+        strain = t["stretch"] - np.where(t["mode"] == "simple-shear", 0.0, 1.0)     # gamma in simple shear
         if not ((t["nominal_stress_pa"] != 0) & (strain != 0)).any():
             raise InputError("no loaded row: every row has zero stress or zero strain (stretch 1, or gamma 0 in "
                              "simple shear), so no law can be fitted", path=p)
         if cfg.max_strain is not None:
-            t = t[np.abs(t["stretch"] - np.where(t["mode"] == "simple-shear", 0.0, 1.0)) <= cfg.max_strain]
+            t = t[np.abs(strain) <= cfg.max_strain]
             if t.empty:
                 raise InputError(f"no row within --max-strain {cfg.max_strain}", path=p)
         tables.append(t)
@@ -418,10 +419,6 @@ def _compliance_implausible(c_mm_per_n: float, data) -> list[dict]:
     return out
 
 
-def _lines_listed(lines: list[int], most: int = 8) -> str:
-    return ", ".join(map(str, lines[:most])) + (f" and {len(lines) - most} more" if len(lines) > most else "")
-
-
 def _spikes_left_out(input_info: list[dict]) -> list[dict]:
     """``load-spikes`` warnings: the samples of a log left out of the fit as over-range codes or
     single-sample spikes (:func:`bsipipe.io.machine_log.load_spikes`), by line."""
@@ -433,7 +430,7 @@ def _spikes_left_out(input_info: list[dict]) -> list[dict]:
             out.append(warning(
                 "load-spikes",
                 f"fit-ogden: {Path(info['path']).name}: {len(sp['lines'])} load sample(s) left out of the fit, "
-                f"over-range codes or single-sample spikes (line(s) {_lines_listed(sp['lines'])}: "
+                f"over-range codes or single-sample spikes (line(s) {listed(sp['lines'], 8)}: "
                 + ", ".join(f"{v:.4g} N" for v in sp["load_n"][:8]) + ")", log, path=str(info["path"]),
                 lines=sp["lines"]))
     return out

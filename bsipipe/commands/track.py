@@ -869,7 +869,9 @@ def _sequence_warnings(table: pd.DataFrame, events: list[dict], cfg, views, info
               "one view's tracks interpolated to the other's times; 3-D points exist for the frame numbers "
               "both views hold, not for the whole of the longer recording", log, frames_per_s=rates))
     # where each view's times come from: --fps is only for sources without time stamps
-    untimed = [v for v in views if not table.loc[table["view"] == v, "time_s"].notna().any()]
+    by_view = table.groupby("view", sort=False)
+    timed, n_frames = by_view["time_s"].count() > 0, by_view["frame"].nunique()
+    untimed = [v for v in views if not timed.get(v, False)]
     stamped = {v: r for v, r in rates.items()
                if cfg.fps is not None and abs(r - cfg.fps) > 1e-3 * cfg.fps}
     for v in views:
@@ -883,7 +885,7 @@ def _sequence_warnings(table: pd.DataFrame, events: list[dict], cfg, views, info
                                                                stamped.items())
             + ": the source's own time stamps are (give --fps only for frames without them)", log,
             fps=cfg.fps, frames_per_s=stamped))
-    untimed = [v for v in untimed if table.loc[table["view"] == v, "frame"].nunique() > 1]   # one frame has no time to lose
+    untimed = [v for v in untimed if n_frames.get(v, 0) > 1]      # one frame has no time to lose
     if untimed:
         out.append(warning(
             "no-frame-times",

@@ -109,6 +109,9 @@ class MachineLog:
     dialect : dict str -> str
         ``delimiter``, ``decimal``, ``encoding``, ``newline`` and ``sign_from`` (how the
         sign convention was decided).
+    spikes : ndarray of bool, shape (n,)
+        Load samples that are no force (:func:`load_spikes`): they decided no sign, and a
+        fit leaves them out.
     """
 
     path: str
@@ -126,10 +129,13 @@ class MachineLog:
     data_lines: np.ndarray | None = None
     dialect: dict[str, str] = field(default_factory=dict)
     geometry_invalid: dict[str, tuple[str, int]] = field(default_factory=dict)
+    spikes: np.ndarray | None = None
 
     def __post_init__(self):
         if self.displacement_sign == 0:
             object.__setattr__(self, "displacement_sign", self.compression_sign)
+        if self.spikes is None:
+            object.__setattr__(self, "spikes", load_spikes(self.load_n))
 
     def __len__(self) -> int:
         return int(self.time_s.size)
@@ -377,9 +383,10 @@ def read_machine_log(path: str | os.PathLike) -> MachineLog:
             segment = col.astype(np.int64)
 
     geometry, geometry_invalid = _geometry(geometry_rows, decimal, path)
+    spikes = load_spikes(values["load"])
     load_sign, disp_sign, sign_from = _compression_signs(
         values["extension"], values["load"], normalise_name(names[roles["load"]]),
-        normalise_name(names[roles["extension"]]))
+        normalise_name(names[roles["extension"]]), spikes)
 
     if units_row is not None:
         layout = "bluehill2" if units[names[roles["time"]]].lower() == "sec" else "bluehill3"
@@ -393,7 +400,7 @@ def read_machine_log(path: str | os.PathLike) -> MachineLog:
                       load_n=values["load"], segment=segment, metadata=metadata,
                       geometry=geometry, geometry_invalid=geometry_invalid, units=units, compression_sign=load_sign,
                       displacement_sign=disp_sign, extra=extra, data_lines=line_no,
-                      dialect=dialect)
+                      dialect=dialect, spikes=spikes)
 
 
 def _column_units(path, names_row, roles, h, u, next_cells):
@@ -639,19 +646,19 @@ def load_spikes(load) -> np.ndarray:
     return bad | spike
 
 
-def _compression_signs(extension, load, load_name, extension_name) -> tuple[int, int, str]:
+def _compression_signs(extension, load, load_name, extension_name, spikes) -> tuple[int, int, str]:
     """The sign of compression on the load and extension channels.
 
     The record decides: the sample most loaded away from the start,
-    ``k = argmax |F - F_start|`` (:func:`load_spikes` left out), is where the machine compressed hardest, so the sign of
-    ``F_k - F_start`` is the load's sign of compression and that of ``x_k - x_0`` the
-    extension's.  A name saying ``compressive`` (Bluehill's ``Compressive load``,
+    ``k = argmax |F - F_start|`` (the ``spikes`` of :func:`load_spikes` left out), is where
+    the machine compressed hardest, so the sign of ``F_k - F_start`` is the load's sign of
+    compression and that of ``x_k - x_0`` the extension's.  A name saying ``compressive`` (Bluehill's ``Compressive load``,
     ``Compressive extension``) means +1; where the data are clear and say the opposite (a
     template that names the channel compressive but writes Instron's negative values), the
     data win and ``sign_from`` says so.  A record with no load change keeps the name's sign,
     else Instron's convention (compression negative).
     """
-    ok = ~load_spikes(load)                 # a glitch or an over-range code decides nothing
+    ok = ~spikes                            # a glitch or an over-range code decides nothing
     start = float(np.median(load[ok][: min(10, int(ok.sum()))])) if ok.any() else 0.0
     dev = np.where(ok, load - start, 0.0)
     k = int(np.argmax(np.abs(dev)))
