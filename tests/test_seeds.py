@@ -1,9 +1,14 @@
 """seeds.csv as labs write it: a European spreadsheet's ';', names XMALab's layouts can hold."""
 
+from pathlib import Path
+
+import pandas as pd
 import pytest
 
 from bsipipe.errors import InputError
 from bsipipe.io.seeds import read_seeds
+
+XRAY = Path(__file__).parent / "data" / "real" / "xray_frame_deepxromm"
 
 
 @pytest.mark.parametrize("sep", [",", ";", "\t"])
@@ -24,3 +29,27 @@ def test_a_name_with_a_comma_is_refused_naming_its_line(tmp_path):
     with pytest.raises(InputError, match="comma") as e:
         read_seeds(p, ["cam1"])
     assert e.value.line == 3
+
+
+def test_xmalab_seeds_views_called_camN_match_by_name():
+    """Views called cam1 and cam2 keep their names whatever order they are given in: an
+    XMALab seeds file's cam1 columns seed the view called cam1 (it had seeded the first view
+    given, here cam2), and the XMALab 2-D file written back holds cam1 first."""
+    from bsipipe.io.xmalab import format_xmalab_2d, read_xmalab_2d, xmalab_cameras
+    src = XRAY / "sample_frame_input.csv"
+    ref = read_xmalab_2d(src)
+    ref = ref[(ref["frame"] == 0) & ref["x_px"].notna()]
+    for order in (["cam1", "cam2"], ["cam2", "cam1"]):
+        assert xmalab_cameras(order) == {"cam1": "cam1", "cam2": "cam2"}
+        s = read_seeds(src, order)
+        for v in ("cam1", "cam2"):
+            a = s[s["view"] == v].set_index("marker")[["x_px", "y_px"]].sort_index()
+            b = ref[ref["view"] == v].set_index("marker")[["x_px", "y_px"]].sort_index()
+            pd.testing.assert_frame_equal(a, b, check_dtype=False)
+    # other names: the N-th view given is camN, as XMALab numbers the cameras it loads
+    assert xmalab_cameras(["lateral", "dorsal"]) == {"cam1": "lateral", "cam2": "dorsal"}
+    assert xmalab_cameras(["cam2", "dorsal"]) == {"cam1": "cam2", "cam2": "dorsal"}
+    pts = pd.DataFrame({"view": ["cam1", "cam2"], "frame": [0, 0], "marker": ["A", "A"], "x_px": [1.0, 2.0],
+                        "y_px": [3.0, 4.0]})
+    text = format_xmalab_2d(pts, ["cam2", "cam1"])
+    assert text.splitlines()[:2] == ["A_cam1_X,A_cam1_Y,A_cam2_X,A_cam2_Y", "1,3,2,4"]

@@ -1251,13 +1251,13 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     if smoothing is not None:
         cols2d += ["sd_px", "x_px_smooth", "y_px_smooth", "sd_px_smooth", "smooth_outlier"]
     rs.add_csv("markers2d.csv", table[cols2d], float_format="%.6f", na_rep="")
-    from ..io.xmalab import format_xmalab_2d, format_xmalab_3d
+    from ..io.xmalab import format_xmalab_2d, format_xmalab_3d, xmalab_cameras
     marker_order = list(dict.fromkeys(table["marker"]))
     n_frames = int(table["frame"].max()) + 1
     rs.add_text("xmalab_2d.csv", format_xmalab_2d(table[table["found"]], views, marker_order, range(n_frames)))
     result: dict = {
         "views": info,
-        "xmalab_cameras": {f"cam{i + 1}": v for i, v in enumerate(views)},
+        "xmalab_cameras": xmalab_cameras(views),
         "diameter_px": d, "diameter_px_per_view": per_view_d, "diameter_source": diameter_note, "polarity": cfg.polarity, "polarity_source": polarity_note,
         "markers": _marker_summary(table, events, fit),
         "events": events,

@@ -5,7 +5,8 @@ Two forms are read (:func:`read_seeds`):
 - ``seeds.csv``: one row per view and marker, columns ``view,marker,x_px,y_px`` (pixels,
   x to the right, y down, the centre of the top-left pixel at (0, 0));
 - an XMALab 2-D point CSV (:mod:`bsipipe.io.xmalab`), as a user clicks markers in XMALab:
-  its first row (frame 0), ``camN`` the N-th view given.  Markers the file places only in
+  its first row (frame 0), ``camN`` the N-th view given (views called ``cam1..camN``
+  themselves are matched by name: :func:`bsipipe.io.xmalab.xmalab_cameras`).  Markers the file places only in
   later frames are not seeds; they are listed in ``attrs["later"]``, for a warning.
 
 Errors are :class:`~bsipipe.errors.InputError` naming the file and, where there is one, the
@@ -38,12 +39,12 @@ def _separator(path) -> str:
 
 def read_seeds(path, views: Sequence[str], frame_shapes: dict | None = None) -> pd.DataFrame:
     """``seeds.csv`` (``view,marker,x_px,y_px``) or an XMALab 2-D CSV (first row; ``camN``
-    is the N-th view).  Errors name the file and line.  ``frame_shapes`` (view -> (h, w)):
+    is the N-th view, or the view called ``camN``).  Errors name the file and line.  ``frame_shapes`` (view -> (h, w)):
     a seed outside its view's image is an error."""
-    from .xmalab import is_xmalab_2d, read_xmalab_2d
+    from .xmalab import is_xmalab_2d, read_xmalab_2d, xmalab_cameras
     if is_xmalab_2d(path):
         allx = read_xmalab_2d(path)
-        cams = {f"cam{i + 1}": v for i, v in enumerate(views)}
+        cams = xmalab_cameras(views)
         allx = allx[allx["view"].isin(list(cams)) & np.isfinite(allx["x_px"]) & np.isfinite(allx["y_px"])].copy()
         allx["view"] = allx["view"].map(cams)
         x = allx[allx["frame"] == 0]

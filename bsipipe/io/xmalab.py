@@ -10,7 +10,8 @@ The layout is XMALab's own "export 2D points" / "export 3D points" (one file, he
 
 XMALab numbers its cameras ``cam1, cam2, ...`` in the order they were loaded, whatever
 they are called elsewhere; the writers take the views in a given order and map them to
-``cam1..camN`` (recorded by the caller).  Pixel coordinates are XMALab's default export
+``cam1..camN`` (:func:`xmalab_cameras`, recorded by the caller), except views that are
+themselves called ``cam1..camN``, which keep their names whatever order they are given in.  Pixel coordinates are XMALab's default export
 ("distorted", not offset by 1, y not inverted), which is bsipipe's convention: x to the
 right, y down, the centre of the top-left pixel at (0, 0).  XMALab writes `` , `` between
 fields and 12 significant digits; it reads a file by splitting each line at commas and
@@ -52,6 +53,25 @@ def _positions(keys, order) -> np.ndarray:
     return np.array([pos.get(k, -1) for k in keys], dtype=np.int64)
 
 
+def xmalab_cameras(views: Sequence[str]) -> dict[str, str]:
+    """XMALab's camera name of each view, in XMALab's column order (``{"cam1": view, ...}``).
+
+    The N-th view given is ``camN``, except when the views are called ``cam1..camN``
+    themselves (in any order): each is then its own camera, so ``--view cam2=... --view
+    cam1=...`` reads and writes ``cam1`` as the view called ``cam1``.
+
+    >>> xmalab_cameras(["lateral", "dorsal"])
+    {'cam1': 'lateral', 'cam2': 'dorsal'}
+    >>> xmalab_cameras(["cam2", "cam1"])
+    {'cam1': 'cam1', 'cam2': 'cam2'}
+    """
+    views = list(views)
+    names = [f"cam{i + 1}" for i in range(len(views))]
+    if sorted(views) == sorted(names):
+        return {n: n for n in names}
+    return dict(zip(names, views))
+
+
 def format_xmalab_2d(points: pd.DataFrame, views: Sequence[str], markers: Sequence[str] | None = None,
                      frames: Sequence[int] | None = None) -> str:
     """XMALab 2-D CSV text from a tidy table ``view, frame, marker, x_px, y_px``.
@@ -60,7 +80,9 @@ def format_xmalab_2d(points: pd.DataFrame, views: Sequence[str], markers: Sequen
     order of first appearance) and ``frames`` (default ``0..max``; row *i* is frame *i*, as
     XMALab assumes) fix the layout.
     """
-    p = points[points["view"].isin(list(views))]
+    cams = xmalab_cameras(views)
+    views = list(cams.values())             # XMALab's column order
+    p = points[points["view"].isin(views)]
     markers = list(dict.fromkeys(p["marker"])) if markers is None else list(markers)
     if frames is None:
         n = int(p["frame"].max()) + 1 if len(p) else 0
@@ -77,7 +99,7 @@ def format_xmalab_2d(points: pd.DataFrame, views: Sequence[str], markers: Sequen
     miss = ~np.isfinite(arr[:, 0::2]) | ~np.isfinite(arr[:, 1::2])
     arr[:, 0::2][miss] = np.nan
     arr[:, 1::2][miss] = np.nan
-    header = [f"{m}_cam{j + 1}_{a}" for m in markers for j in range(len(views)) for a in "XY"]
+    header = [f"{m}_{c}_{a}" for m in markers for c in cams for a in "XY"]
     return _write(header, arr)
 
 
