@@ -490,6 +490,30 @@ def test_cli_track_polarity_without_seeds(tmp_path, bright):
         assert np.hypot(*(truth[row["frame"]] - [row["x_px"], row["y_px"]]).T).min() < 0.3
 
 
+def test_cli_track_polarity_given_without_seeds_is_checked(tmp_path):
+    """The real X-ray frame (dark steel beads), three copies, no seeds: --polarity bright
+    tracked the bright clutter around the beads without a word; it is now a
+    polarity-mismatch warning naming the counts of the first frame's strong detections of
+    each kind (35 dark against 8 bright here).  --polarity dark: no such warning."""
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k in range(3):
+        (frames / f"f{k}.jpg").write_bytes((XRAY / "sample_frame.jpg").read_bytes())
+    for given in ("bright", "dark"):
+        o = tmp_path / f"given_{given}"
+        r = CliRunner().invoke(cli, ["track", "--view", f"cam1={frames}", "--diameter-px", "4", "--polarity", given,
+                                     "-o", str(o)])
+        assert r.exit_code == 0, r.output
+        j = json.loads((o / "track.json").read_text())
+        assert j["polarity"] == given and j["polarity_source"] == "given"
+        w = [w for w in j["warnings"] if w["code"] == "polarity-mismatch"]
+        if given == "dark":
+            assert not w, w
+        else:
+            assert len(w) == 1 and w[0]["given"] == "bright" and w[0]["dark"] >= 3 * w[0]["bright"] >= 3, w
+            assert "--polarity dark" in w[0]["message"]
+
+
 def test_cli_track_xmalab_seeds_and_config(tmp_path):
     """Seeds straight from XMALab's 2-D CSV (camN = the N-th view), and the YAML form."""
     frames = tmp_path / "frames"

@@ -722,6 +722,10 @@ def _marker_size(cfg, views, firsts: dict, seed_df, rois: dict):
         cfg = cfg.model_copy(update={"polarity": pol})
         polarity = (note, counts)
         log.info("track: markers %s (%s)", pol, note)
+    elif seed_df is None:
+        # a polarity given without seeds is checked as the automatic one would be chosen: the
+        # wrong one tracks clutter (the seeds' own check is that they are found)
+        polarity = ("given", polarity_from_frames(firsts, one_d, rois)[2])
     d = cfg.diameter_px
     note = "given"
     if isinstance(d, dict):
@@ -787,7 +791,16 @@ def _seed_warnings(seed_df, polarity: str, polarity_note: str, polarity_counts) 
                                         for v, ms in later.items())
             + " (seeds are the markers' positions in the first frame: click them there, where they would be)",
             log, markers=later))
-    if polarity_counts is not None and polarity == "bright":
+    if polarity_note == "given" and polarity_counts is not None:
+        other = "bright" if polarity == "dark" else "dark"
+        n = polarity_counts
+        if n[other] >= 3 and n[other] >= 2 * n[polarity]:
+            out.append(warning(
+                "polarity-mismatch",
+                f"track: --polarity {polarity} given, but the first frames hold {n[other]} {other} and {n[polarity]} "
+                f"{polarity} markers of SNR 6 or more: the tracks may follow clutter (--polarity {other}, or auto, "
+                "or seeds)", log, given=polarity, **n))
+    elif polarity_counts is not None and polarity == "bright":
         out.append(warning(
             "bright-markers", f"track: the markers are brighter than their surroundings ({polarity_note}; "
             "raw X-ray frames show steel beads dark: inverted or processed frames?): tracked as bright markers "
