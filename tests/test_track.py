@@ -490,6 +490,48 @@ def test_cli_track_polarity_without_seeds(tmp_path, bright):
         assert np.hypot(*(truth[row["frame"]] - [row["x_px"], row["y_px"]]).T).min() < 0.3
 
 
+@pytest.mark.parametrize("seeded", [False, True])
+def test_cli_track_blank_first_frame(tmp_path, seeded):
+    """Five 9 px beads over six frames, the first frame black (the grabber started before
+    the X-rays).  The polarity and the diameter had been probed on it: nothing found, so the
+    4 px default, a third of the beads.  They are now probed on frame 1, a blank-first-frame
+    warning says so, and every bead is tracked from frame 1 within 0.3 px.  Seeded, frame 0
+    is also named by frames-without-markers (the seeds put every marker there)."""
+    import cv2
+    rng = np.random.default_rng(7)
+    size, n, dia = 200, 6, 9.0
+    B = np.array([[50.3, 60.2], [140.6, 55.8], [100.1, 100.4], [60.7, 150.3], [150.2, 145.6]])
+    field = RayField(bead_camera(size))
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    truth = [B + [0.6 * i, 0.4 * i] for i in range(n)]
+    for i in range(n):
+        img = render_beads(truth[i], dia, size, rng, field=field)
+        cv2.imwrite(str(frames / f"f{i}.png"), np.zeros_like(img) if i == 0 else img)
+    out = tmp_path / "out"
+    args = ["track", "--view", f"cam1={frames}", "--fps", "2", "-o", str(out)]
+    if seeded:
+        seeds = tmp_path / "seeds.csv"
+        pd.DataFrame([("cam1", f"M{j}", *B[j]) for j in range(len(B))],
+                     columns=["view", "marker", "x_px", "y_px"]).to_csv(seeds, index=False)
+        args += ["--seeds", str(seeds)]
+    r = CliRunner().invoke(cli, args)
+    assert r.exit_code == 0, r.output
+    j = json.loads((out / "track.json").read_text())
+    w = {w["code"]: w for w in j["warnings"]}
+    assert w["blank-first-frame"]["views"] == {"cam1": 1}
+    assert 0.75 * dia < j["diameter_px"] < 1.25 * dia, j["diameter_source"]
+    if seeded:
+        assert w["frames-without-markers"]["frames"] == {"cam1": [0]}
+    else:
+        assert "frames-without-markers" not in w
+    m2 = pd.read_csv(out / "markers2d.csv")
+    m2 = m2[m2["found"]]
+    assert sorted(set(m2["frame"])) == list(range(1, n)) and len(m2) == 5 * (n - 1)
+    for _, row in m2.iterrows():
+        assert np.hypot(*(truth[row["frame"]] - [row["x_px"], row["y_px"]]).T).min() < 0.3
+
+
 def test_cli_track_polarity_given_without_seeds_is_checked(tmp_path):
     """The real X-ray frame (dark steel beads), three copies, no seeds: --polarity bright
     tracked the bright clutter around the beads without a word; it is now a

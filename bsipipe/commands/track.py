@@ -400,15 +400,42 @@ def _seeds_outside(seed_df: pd.DataFrame, rois: dict) -> list[tuple[str, str, fl
     return out
 
 
-def _first_frames(views: dict, channel) -> dict:
-    """Each view's first frame, decoded once for the seeds' check, the polarity and the
-    diameter (None when it has no frame: reported later)."""
+#: Frames read past a blank first frame for one with a picture (:func:`_first_frames`).
+BLANK_LOOKAHEAD = 10
+
+
+def is_blank(img: np.ndarray) -> bool:
+    """A frame without a picture: its whole range of grey levels (max - min) is within 16
+    sd of its own pixel noise (Immerkaer's estimate), plus one level: a black or saturated
+    frame (range 0) or dark noise only (about 10 sd over a megapixel).  A frame with any
+    marker, edge or field border spans far more."""
+    from ..imaging.detect import pixel_noise
+    a = np.asarray(img)
+    rng = float(a.max()) - float(a.min())
+    return rng <= 16.0 * pixel_noise(a, step=4) + 1.0
+
+
+def _first_frames(views: dict, channel) -> tuple[dict, dict]:
+    """Each view's first frame with a picture, decoded once for the seeds' check, the
+    polarity and the diameter (None when it has no frame: reported later), and the views
+    whose first frame was blank (:func:`is_blank`): view -> the frame used instead, the first
+    of the next :data:`BLANK_LOOKAHEAD` with a picture (frame 0 when none has one)."""
+    from itertools import islice
+
     from ..io.images import iter_frames
-    out = {}
+    out, blank = {}, {}
     for v, p in views.items():
-        fr = next(iter(iter_frames(p, channel=channel)), None)
+        it = iter(iter_frames(p, channel=channel))
+        fr = next(it, None)
         out[v] = None if fr is None else fr.image
-    return out
+        if fr is not None and is_blank(fr.image):
+            for k, nxt in enumerate(islice(it, BLANK_LOOKAHEAD), start=1):
+                if not is_blank(nxt.image):
+                    out[v], blank[v] = nxt.image, k
+                    break
+            else:
+                blank[v] = 0
+    return out, blank
 
 
 def _seeds_together(seeds: pd.DataFrame, diameters: dict) -> list[tuple]:
@@ -580,11 +607,13 @@ def _frames_listed(frames: dict[str, list[int]]) -> str:
                      for v, m in frames.items())
 
 
-def _frames_without_markers(table: pd.DataFrame) -> dict[str, list[int]]:
+def _frames_without_markers(table: pd.DataFrame, seeded: bool = False) -> dict[str, list[int]]:
     """Per view, the frames in which no marker was found although at least two were found in
     an earlier and in a later frame: a frame without its picture (a missed exposure of pulsed
     fluoroscopy, a black or flashed frame from the grabber) rather than markers hidden one by
-    one.  Frames missing from the numbering (status ``missing-frame``) are not counted."""
+    one.  ``seeded``: the seeds place the markers in the first frame, so the frames before
+    the first in which two were found count too.  Frames missing from the numbering (status
+    ``missing-frame``) are not counted."""
     out = {}
     for v, g in table.groupby("view", sort=False):
         g = g[g["status"] != "missing-frame"]
@@ -594,7 +623,7 @@ def _frames_without_markers(table: pd.DataFrame) -> dict[str, list[int]]:
         seen = n.index[n.to_numpy() >= 2]
         if len(seen) < 2:
             continue
-        empty = n.index[(n.to_numpy() == 0) & (n.index > seen[0]) & (n.index < seen[-1])]
+        empty = n.index[(n.to_numpy() == 0) & ((n.index > seen[0]) | seeded) & (n.index < seen[-1])]
         if len(empty):
             out[str(v)] = [int(f) for f in empty]
     return out
@@ -848,11 +877,12 @@ def _sequence_warnings(table: pd.DataFrame, events: list[dict], cfg, views, info
               "numbers and pair with the other view's frames of the same number",
             log, frames={v: m for v, m in missing.items()}))
         table = _missing_frame_rows(table, missing, cfg.fps, views)
-    empty = _frames_without_markers(table)
+    empty = _frames_without_markers(table, seeded)
     if empty:
         out.append(warning(
             "frames-without-markers",
-            "track: frames in which no marker was found, between frames where they were ("
+            "track: frames in which no marker was found, between frames where they were"
+            + (" or where the seeds put them" if seeded else "") + " ("
             + _frames_listed(empty) + "): a frame without its picture (a missed exposure, a black or flashed frame) more likely than "
               "every marker hidden at once; the markers were followed across them (lost and refound events), "
               "the frames have no 3-D point from that view",
@@ -1181,7 +1211,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
             raise InputError(f"view {v}: no such file or folder", path=p)
     # each view's first frame, for the seeds' check, the polarity and the diameter (then let go)
     given_roi = _given_roi(cfg)
-    firsts = _first_frames(cfg.views, cfg.channel)
+    firsts, blank_firsts = _first_frames(cfg.views, cfg.channel)
     shapes = {v: None if im is None else im.shape for v, im in firsts.items()}
     rois = _resolve_rois(cfg, shapes, config_path) if given_roi else _roi_per_view(cfg)
     _check_diameter(cfg, shapes, config_path)
@@ -1201,6 +1231,14 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     del firsts
     together = _seeds_together(seed_df, per_view_d) if seed_df is not None else []
     warnings: list[dict] = []
+    if blank_firsts:
+        warnings.append(warning(
+            "blank-first-frame",
+            "track: first frame without a picture (a missed exposure, or the grabber started before the X-rays): "
+            + "; ".join(f"{v}: the polarity and diameter probed on frame {k}" if k else
+                        f"{v}: so are the next {BLANK_LOOKAHEAD}, probed on frame 0" for v, k in blank_firsts.items())
+            + (" (the seeds are still positions in frame 0: the markers are looked for there in the next frames)"
+               if seed_df is not None else ""), log, views=blank_firsts))
     if together:
         # said (logged) before the run: a marker seeded twice ends "not found in any frame" after it
         warnings.append(warning(
