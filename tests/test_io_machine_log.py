@@ -346,3 +346,31 @@ def test_a_compression_table_written_positive_is_turned_and_said(tmp_path):
     assert t.attrs["sign_turned"] == ["uniaxial"]
     mixed = "stretch,nominal_stress_pa\n1.0,0\n0.9,-5\n1.1,-3\n"       # rows disagree: left as written
     assert read_stress_table(_table(tmp_path, mixed, "mixed.csv")).attrs["sign_turned"] == []
+
+
+def test_results_table_of_two_specimens_leaves_a_differing_dimension_unknown(tmp_path):
+    """A Bluehill 3 export whose results table lists two specimens: the first row's diameter
+    had been taken for the log without a word.  Where the rows agree (height 12 mm) the
+    dimension stands; where they differ (18 and 20 mm) it is unknown, and fit-ogden without
+    --diameter-mm says so naming the line (exit 2); with the option the log fits."""
+    text = (LOGS / "bluehill3_results_table.csv").read_text()
+    two = text.replace('"1","brain 2","18.00","12.00","0.00166"\n',
+                       '"1","brain 2","18.00","12.00","0.00166"\n"2","brain 3","20.00","12.00","0.00170"\n')
+    assert two != text
+    p = tmp_path / "two.csv"
+    p.write_text(two)
+    log = read_machine_log(p)
+    assert log.geometry["height_mm"] == pytest.approx(12.0) and "diameter_mm" not in log.geometry
+    why, line = log.geometry_invalid["diameter_mm"]
+    assert "18 and 20 mm" in why and line == 5
+    one = read_machine_log(LOGS / "bluehill3_results_table.csv")
+    assert one.geometry["diameter_mm"] == pytest.approx(18.0) and not one.geometry_invalid
+
+    from click.testing import CliRunner
+
+    from bsipipe.cli import cli
+    r = CliRunner().invoke(cli, ["fit-ogden", str(p), "-o", str(tmp_path / "out"), "--bootstrap", "0"])
+    assert r.exit_code == 2 and "18 and 20 mm" in r.output and "line 5" in r.output and "--diameter-mm" in r.output
+    r = CliRunner().invoke(cli, ["fit-ogden", str(p), "--diameter-mm", "18", "-o", str(tmp_path / "out"),
+                                 "--bootstrap", "0", "--no-loop"])
+    assert r.exit_code == 0, r.output

@@ -562,8 +562,9 @@ def _read_preamble(lines: list[str], delim):
                     metadata[f"{table['title']}: {name}{suffix}"] = (
                         f"{cells[j]} {unit}".strip() if unit else cells[j])
                     m = _GEOMETRY.match(normalise_name(name))
-                    if m and unit and table["n"] == 0:
-                        geometry_rows.append((m.group("what"), cells[j], unit, i + 1))
+                    if m and unit:
+                        # a later row is another specimen's: kept to tell whether it agrees
+                        geometry_rows.append((m.group("what"), cells[j], unit, i + 1, table["n"]))
                 table["n"] += 1
             continue
         if 2 <= len(filled) <= 3 and cells[0] and not looks_numeric(cells[0]):
@@ -572,15 +573,34 @@ def _read_preamble(lines: list[str], delim):
     return metadata, geometry_rows, raw_marker
 
 
+def _length_or_none(value, unit, decimal) -> float | None:
+    """A length in mm, or None where the value or unit is not one."""
+    try:
+        v = parse_number(value, decimal) * unit_factor(unit, "length")
+    except (ValueError, UnknownUnit):
+        return None
+    return float(v) if np.isfinite(v) and v > 0 else None
+
+
 def _geometry(rows, decimal, path) -> tuple[dict[str, float], dict[str, tuple[str, int]]]:
     """``{what}_mm`` from the metadata rows that give a length with a unit, and the rows whose
     value is empty or not a positive finite number (``key -> (reason, line)``: a template's
     unused dimensions, left at 0; an error only where a caller needs that dimension)."""
     out: dict[str, float] = {}
     invalid: dict[str, tuple[str, int]] = {}
-    for what, value, unit, line in rows:
+    ambiguous: set[str] = set()
+    for what, value, unit, line, *row in rows:
         key = f"{what}_mm"
-        if key in out:
+        if row and row[0] > 0:
+            # a results table's later row: another specimen of the same test file.  Its
+            # dimension differing from the first row's leaves this log's unknown
+            v = _length_or_none(value, unit, decimal)
+            if key in out and v is not None and not np.isclose(v, out[key], rtol=1e-6) and key not in ambiguous:
+                ambiguous.add(key)
+                invalid[key] = (f"the results table lists specimens of different {what} ({out.pop(key):g} and "
+                                f"{v:g} mm): which is this log's is not known", line)
+            continue
+        if key in out or key in ambiguous:
             continue
         if not str(value).strip():
             invalid.setdefault(key, (f"the {what} is empty", line))
