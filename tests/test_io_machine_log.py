@@ -374,3 +374,25 @@ def test_results_table_of_two_specimens_leaves_a_differing_dimension_unknown(tmp
     r = CliRunner().invoke(cli, ["fit-ogden", str(p), "--diameter-mm", "18", "-o", str(tmp_path / "out"),
                                  "--bootstrap", "0", "--no-loop"])
     assert r.exit_code == 0, r.output
+
+
+def test_a_tension_record_is_refused_naming_its_peak_line(tmp_path):
+    """Channels named tensile whose load rises: the specimen was pulled.  It had been fitted
+    as a compression (the data's sign taken for compression's).  It is now exit 2 naming the
+    most loaded line; the same channels falling (Instron's compression negative) read as a
+    compression test."""
+    t = np.arange(60) * 0.1
+    x = np.where(t < 1.0, 0.0, 0.12 * (t - 1.0))
+    f = np.where(t < 1.0, 0.0, 0.05 * (t - 1.0) ** 2) + 1e-4 * np.cos(7 * t)
+    for sign in (1, -1):
+        p = tmp_path / f"tensile{sign}.csv"
+        rows = "".join(f"{a:.2f},{sign * b:.4f},{sign * c:.5f}\n" for a, b, c in zip(t, x, f))
+        p.write_text("Time (s),Tensile extension (mm),Tensile load (N)\n" + rows)
+        if sign == 1:
+            with pytest.raises(InputError, match=r"tension test") as e:
+                read_machine_log(p)
+            assert e.value.line == 2 + int(np.argmax(f)) and "Tensile load" in str(e.value)
+        else:
+            log = read_machine_log(p)
+            u, force = log.compression()
+            assert log.compression_sign == -1 and force.max() == pytest.approx(f.max(), rel=1e-3) and u.max() > 0

@@ -384,9 +384,14 @@ def read_machine_log(path: str | os.PathLike) -> MachineLog:
 
     geometry, geometry_invalid = _geometry(geometry_rows, decimal, path)
     spikes = load_spikes(values["load"])
+    load_name = normalise_name(names[roles["load"]])
     load_sign, disp_sign, sign_from = _compression_signs(
-        values["extension"], values["load"], normalise_name(names[roles["load"]]),
-        normalise_name(names[roles["extension"]]), spikes)
+        values["extension"], values["load"], load_name, normalise_name(names[roles["extension"]]), spikes)
+    if sign_from == _TENSION:
+        k = _most_loaded(values["load"], spikes)
+        raise InputError(f"'{names[roles['load']]}' rises to {values['load'][k]:.4g} N: the specimen was pulled, a "
+                         "tension test; machine logs are fitted as compression between platens (a tension test can "
+                         "be fitted as a stress-stretch table, mode uniaxial)", path=path, line=int(line_no[k]))
 
     if units_row is not None:
         layout = "bluehill2" if units[names[roles["time"]]].lower() == "sec" else "bluehill3"
@@ -666,6 +671,18 @@ def load_spikes(load) -> np.ndarray:
     return bad | spike
 
 
+#: ``sign_from`` of a record whose channel named tensile rises: a tension test.
+_TENSION = "tension"
+
+
+def _most_loaded(load, spikes) -> int:
+    """Index of the sample most loaded away from the start (the median of the first ten
+    samples), the ``spikes`` left out."""
+    ok = ~spikes
+    start = float(np.median(load[ok][: min(10, int(ok.sum()))])) if ok.any() else 0.0
+    return int(np.argmax(np.abs(np.where(ok, load - start, 0.0))))
+
+
 def _compression_signs(extension, load, load_name, extension_name, spikes) -> tuple[int, int, str]:
     """The sign of compression on the load and extension channels.
 
@@ -675,19 +692,23 @@ def _compression_signs(extension, load, load_name, extension_name, spikes) -> tu
     compression and that of ``x_k - x_0`` the extension's.  A name saying ``compressive`` (Bluehill's ``Compressive load``,
     ``Compressive extension``) means +1; where the data are clear and say the opposite (a
     template that names the channel compressive but writes Instron's negative values), the
-    data win and ``sign_from`` says so.  A record with no load change keeps the name's sign,
-    else Instron's convention (compression negative).
+    data win and ``sign_from`` says so.  A name saying ``tensile`` (``Tensile load``) whose
+    data rise is a tension test: ``sign_from`` is :data:`_TENSION` (the reader refuses it).
+    A record with no load change keeps the name's sign, else Instron's convention
+    (compression negative).
     """
     ok = ~spikes                            # a glitch or an over-range code decides nothing
     start = float(np.median(load[ok][: min(10, int(ok.sum()))])) if ok.any() else 0.0
     dev = np.where(ok, load - start, 0.0)
-    k = int(np.argmax(np.abs(dev)))
+    k = _most_loaded(load, spikes)
     scale = float(np.median(np.abs(np.diff(load)))) if load.size > 2 else 0.0
     clear = abs(dev[k]) > 10 * scale and dev[k] != 0
     data_load = int(np.sign(dev[k])) if clear else 0
     step = extension[k] - extension[0]
     data_disp = int(np.sign(step)) if clear and step != 0 else 0
     notes = []
+    if load_name.startswith("tensile") and data_load == 1:
+        return 1, data_disp or 1, _TENSION
     if load_name.startswith("compressive"):
         load_sign, how = 1, "column name"
         if data_load == -1:
