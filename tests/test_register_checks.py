@@ -4,7 +4,8 @@ A seeded trial with its truth (four references at the corners of a 20 mm square,
 case: a label swap across a diagonal fits the references as well as a moved reference and a
 turn by 180 degrees; five implanted markers below them): CT labels exchanged between two
 references (the ``label-swap`` effect names and undoes it; the implanted markers decide
-against the moved-reference explanation), a reference exchanged with an implanted marker (a
+against the moved-reference explanation), three or four labels in a cycle and two exchanges
+at once (given back as one relabelling), a reference exchanged with an implanted marker (a
 ``ct-check`` warning), references that coincide or lie on one line (exit 2, naming the file),
 nearly on one line (a conditioning warning), three references one of which moved (a
 ``large-fre`` warning), an implanted marker without a CT position (still a marker), and the
@@ -119,22 +120,59 @@ def test_label_swap_is_named_and_undone(tmp_path, pair):
     assert res["reference_checks"][pair[0]]["ct_label"] == pair[1]
 
 
-@pytest.mark.parametrize("labels", [("R1", "R2", "R4"), ("R1", "R4", "R3"), ("R2", "R3", "R4")])
-def test_three_labels_in_a_cycle_are_no_pair_swap(tmp_path, labels):
-    """Three CT labels in a cycle (a -> b -> c -> a): no exchange of two labels makes the
-    references fit, and none is taken.  One had been, on the implanted markers alone, though
-    the references then fitted worse (the helper's sample-study case: FRE 13.61 -> 14.15 mm),
-    with label_swaps naming a wrong pair (R2 <-> R4, R1 <-> R3, R2 <-> R3 here); the large FRE
-    is warned about instead."""
-    a, b, c = labels
+def _relabel(mapping):
+    """``ct_edit``: the CT file's label ``b`` on the marker truly ``a``, for ``a: b`` in ``mapping``."""
+    def edit(ct):
+        true = {n: ct[n].copy() for n in mapping}
+        for a, b in mapping.items():
+            ct[b] = true[a]
+    return edit
 
-    def cycle(ct):
-        ct[a], ct[b], ct[c] = ct[c].copy(), ct[a].copy(), ct[b].copy()
-    _trial(tmp_path, ct_edit=cycle)
+
+@pytest.mark.parametrize("labels", [("R1", "R2", "R4"), ("R1", "R4", "R3"), ("R2", "R3", "R4")])
+def test_three_labels_in_a_cycle_are_given_back(tmp_path, labels):
+    """Three CT labels in a cycle (the CT file calls a b, b c and c a).  No exchange of two
+    labels makes the references fit: before, none was taken, FRE stayed at millimetres with
+    a large-fre warning (and earlier still one wrong pair had been taken on the implanted
+    markers alone, FRE 13.61 -> 14.15 mm).  The label-swap effect now tries every
+    relabelling of the references: the cycle is found, given back, and the transform is the
+    true one (FRE and implanted markers at the noise)."""
+    a, b, c = labels
+    _trial(tmp_path, ct_edit=_relabel({a: b, b: c, c: a}))
     r, res = _register(tmp_path)
     assert r.exit_code == 0, r.output
-    assert "label-swap" not in [s["effect"] for s in res["loop"]["steps"]]
-    assert res["references"]["swapped"] == [] and "large-fre" in _codes(res)
+    assert [s["effect"] for s in res["loop"]["steps"]] == ["label-swap"]
+    got = res["references"]["swapped"]
+    assert len(got) == 1 and len(got[0]) == 3
+    # the cycle as X-ray name -> CT label, whichever member it starts from
+    cyc = got[0]
+    assert {x: y for x, y in zip(cyc, cyc[1:] + cyc[:1])} == {a: b, b: c, c: a}
+    assert res["fre_rms_mm"] < 5 * np.sqrt(3) * NOISE_MM and res["ct_check_rms_mm"] < 0.05
+    assert np.abs(np.array(res["R"]) - T_TRUE.R).max() < 1e-3
+    assert "large-fre" not in _codes(res)
+    w = next(w for w in res["warnings"] if w["code"] == "label-swap")
+    assert w["cycles"] == got and w["pairs"] == [] and "mixed up" in w["message"]
+    assert {k: v["ct_label"] for k, v in res["reference_checks"].items() if k in labels} == {a: b, b: c, c: a}
+    assert res["label_swaps"][0]["note"].startswith(f"the CT file's {dict(zip(cyc, cyc[1:] + cyc[:1]))[cyc[0]]} is")
+
+
+@pytest.mark.parametrize("case", ["turned-by-one-corner", "two-pairs"])
+def test_four_labels_relabelled_are_given_back(tmp_path, case):
+    """The craniotomy's corners clicked in CT from another corner (every label turned by one:
+    R1 is called R2, R2 R3, R3 R4, R4 R1), and two pairs exchanged at once (R1 <-> R2 and
+    R3 <-> R4).  Neither can be undone one exchange at a time (after one, two references still
+    fail, so no single exchange is counted); the relabelling of all four is found and given
+    back, the implanted markers telling it from the square's symmetric alternatives."""
+    mapping = ({"R1": "R2", "R2": "R3", "R3": "R4", "R4": "R1"} if case == "turned-by-one-corner"
+               else {"R1": "R2", "R2": "R1", "R3": "R4", "R4": "R3"})
+    _trial(tmp_path, ct_edit=_relabel(mapping))
+    r, res = _register(tmp_path)
+    assert r.exit_code == 0, r.output
+    assert [s["effect"] for s in res["loop"]["steps"]] == ["label-swap"]
+    got = {x: y for c in res["references"]["swapped"] for x, y in zip(c, c[1:] + c[:1])}
+    assert got == mapping
+    assert res["fre_rms_mm"] < 5 * np.sqrt(3) * NOISE_MM and res["ct_check_rms_mm"] < 0.05
+    assert np.abs(np.array(res["R"]) - T_TRUE.R).max() < 1e-3
 
 
 def test_moving_reference_still_wins_over_a_swap_that_does_not_explain_it():

@@ -349,10 +349,19 @@ def _fre_rms(fit) -> float:
     return float(np.sqrt(np.mean(np.sum(fit.residual_vectors[fit.used] ** 2, axis=1))))
 
 
+def _relabel_note(c) -> str:
+    """What a relabelling cycle of the label-swap effect says about the CT file."""
+    if len(c) == 2:
+        return f"the CT file's {c[0]} is the marker the X-ray tracks call {c[1]}, and its {c[1]} is their {c[0]}"
+    return "the CT file's " + ", its ".join(f"{b} is the marker the X-ray tracks call {a}"
+                                           for a, b in zip(c, c[1:] + c[:1]))
+
+
 def _reference_effect_warnings(report, *, has_check: bool) -> list[dict]:
     """``label-swap`` when the loop exchanged CT labels, ``moving-reference`` when it left a
     reference out; ``ambiguous-reference-error`` when the loop kept label-swap or
     moving-reference with the other within its tie margin."""
+    from ..geometry.registration_effects import describe_cycle
     from ..quality import warning
 
     out = []
@@ -361,10 +370,11 @@ def _reference_effect_warnings(report, *, has_check: bool) -> list[dict]:
         if name in ("label-swap", "moving-reference"):
             fre = f"loop effect {name}: FRE RMS {_fre_rms(step.before.fit):.4g} -> {_fre_rms(step.after.fit):.4g} mm"
             if name == "label-swap":
-                new = [list(p) for p in step.after.spec.swapped if p not in step.before.spec.swapped]
-                what = (f"the CT labels {', '.join(f'{a} <-> {b}' for a, b in new)} are exchanged relative to the "
+                new = [list(c) for c in step.after.spec.swapped if c not in step.before.spec.swapped]
+                how = "exchanged" if all(len(c) == 2 for c in new) else "mixed up"
+                what = (f"the CT labels {', '.join(describe_cycle(c) for c in new)} are {how} relative to the "
                         f"X-ray markers ({fre}); registered with the labels corrected: fix the CT file")
-                details = {"pairs": new}
+                details = {"pairs": [c for c in new if len(c) == 2], "cycles": new}
             else:
                 new = [n for n in step.after.spec.moved if n not in step.before.spec.moved]
                 what = (f"reference(s) {', '.join(new)} moved relative to the others (on the brain rather than the "
@@ -489,8 +499,7 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
     fle, fle_dof = reg.estimate_fle(fit.residual_vectors[fit.used], scale=spec.scale)
     noise = reg.tracking_noise(pos[:, fit.used])
     noise_3d = float(np.sqrt(3.0) * noise["sigma_mm"])
-    swaps = [{"references": [a, b], "note": f"the CT file's {a} is the marker the X-ray tracks call {b}, and its "
-                                            f"{b} is their {a}"} for a, b in spec.swapped]
+    swaps = [{"references": list(c), "note": _relabel_note(c)} for c in spec.swapped]
     warnings += _reference_effect_warnings(report, has_check=bool(c_names))
     if np.isfinite(noise_3d) and fre_rms > NOISE_FACTOR * noise_3d:
         why = ("with three references the moving-reference test cannot run, so a moved or mislabelled reference "

@@ -25,16 +25,21 @@ positions in the registration frame F; its residual is the 3N coordinates of
     minus :math:`3 \ln 3N`.  Evidence of no motion is not evidence that the CT position is
     right, so these two are never negative; (c) the implanted-marker check below.
 ``label-swap``
-    Two references whose labels are exchanged between the CT file and the X-ray tracks (a
-    click order mixed up in Slicer or in the tracking seeds).  Signature: the same as a moved
-    reference at the registration frame (two references, or more, fail their held-out
-    prediction) but no motion over the trial; exchanging the two CT labels makes every
-    reference consistent.  No continuous parameter: the loop tries every pair of the
-    references in use and keeps the pair with the strongest outside evidence, then the best
-    fit (reported as ``label_swaps``).  Outside evidence: the held-out evidence the moving-reference effect
-    would claim for the worse of the two, plus :math:`3 \ln 3N` (the three parameters a
-    moved reference costs and a swap does not) minus :math:`2 \ln P` (the choice among the
-    :math:`P = N(N-1)/2` pairs), counted only when after the exchange no reference fails its
+    References whose labels are mixed up between the CT file and the X-ray tracks (a click
+    order mixed up in Slicer or in the tracking seeds): two exchanged, or more in a cycle
+    (clicking the corners of a craniotomy from another corner turns every label by one).
+    Signature: the same as a moved reference at the registration frame (two references, or
+    more, fail their held-out prediction) but no motion over the trial; giving the CT labels
+    back makes every reference consistent.  No continuous parameter: the loop tries every
+    relabelling of the references in use (:func:`relabellings`: every permutation of up to
+    :data:`MAX_PERMUTED` references, else those moving two or three) and keeps the one with
+    the strongest outside evidence, then the best fit (reported as ``label_swaps``, one
+    cycle each: a pair, or ``[a, b, c]`` for X-ray a = CT b, b = c, c = a; ties to the
+    fewest labels changed).  Outside evidence: the held-out evidence the moving-reference
+    effect would claim for the worst of the references free to be relabelled, plus :math:`3 \ln 3N` (the three parameters a moved
+    reference costs and a relabelling does not) minus :math:`2 \ln K` (the choice among the
+    :math:`K` relabellings tried that change as many labels or fewer: an exchange competes
+    with the :math:`N(N-1)/2` exchanges only), counted only when after it no reference fails its
     held-out test (Bonferroni 1 %) and the best moved-reference fit is not significantly
     better (an F test with the moved reference's three parameters, 1 %); and (c).  With four
     references at the corners of a square, an exchange across a diagonal and a moved
@@ -76,17 +81,19 @@ MIN_REFERENCES = 3
 
 @dataclass(frozen=True)
 class RegistrationSpec:
-    """The registration model: ``scale`` on/off, the references taken as moved, and the pairs
-    of references whose CT labels are exchanged (``swapped``, X-ray names)."""
+    """The registration model: ``scale`` on/off, the references taken as moved, and the
+    cycles of references whose CT labels are mixed up (``swapped``, X-ray names: in a cycle
+    ``(c0, c1, ..., ck)`` the CT file's ``c1`` is the X-ray ``c0``, its ``c2`` the X-ray
+    ``c1``, ..., its ``c0`` the X-ray ``ck``; a pair is an exchange)."""
 
     scale: bool = False
     moved: tuple[str, ...] = ()
-    swapped: tuple[tuple[str, str], ...] = ()
+    swapped: tuple[tuple[str, ...], ...] = ()
 
     def describe(self) -> str:
         s = "similarity (rigid + uniform scale)" if self.scale else "rigid"
         if self.swapped:
-            s += "; CT labels " + ", ".join(f"{a} <-> {b}" for a, b in self.swapped) + " exchanged"
+            s += "; CT labels " + ", ".join(describe_cycle(c) for c in self.swapped) + " given back"
         if self.moved:
             s += f"; moved reference{'s' if len(self.moved) > 1 else ''} {', '.join(self.moved)} not used"
         return s
@@ -142,12 +149,23 @@ class RegistrationFit:
     success: bool = True
 
 
+def describe_cycle(c) -> str:
+    """``a <-> b`` for a pair; ``a = CT b, b = CT c, c = CT a`` for a longer cycle."""
+    if len(c) == 2:
+        return f"{c[0]} <-> {c[1]}"
+    return ", ".join(f"{a} = CT {b}" for a, b in zip(c, c[1:] + c[:1]))
+
+
+def ct_labels(spec: RegistrationSpec) -> dict[str, str]:
+    """X-ray name -> the CT file's label of that marker, for the references ``spec`` relabels."""
+    return {a: b for c in spec.swapped for a, b in zip(c, c[1:] + c[:1])}
+
+
 def ct_positions(data: RegistrationData, spec: RegistrationSpec) -> np.ndarray:
-    """The CT positions (N, 3) of ``data.names`` once the label pairs in ``spec.swapped`` are exchanged."""
+    """The CT positions (N, 3) of ``data.names`` once the labels are given back (``spec.swapped``)."""
     y = data.y_mm.copy()
-    for a, b in spec.swapped:
-        i, j = data.index(a), data.index(b)
-        y[[i, j]] = y[[j, i]]
+    for a, b in ct_labels(spec).items():
+        y[data.index(a)] = data.y_mm[data.index(b)]
     return y
 
 
@@ -254,34 +272,96 @@ def _candidate(data: RegistrationData, spec: RegistrationSpec) -> str | None:
     return max(used, key=lambda n: (scores[n], res[n]))
 
 
-def _swap_pairs(data: RegistrationData, spec: RegistrationSpec) -> list[tuple[str, str]]:
-    """The pairs of references in use, neither of them already in an exchanged pair."""
-    done = {n for p in spec.swapped for n in p}
-    free = [n for n in data.names if n not in spec.moved and n not in done]
-    return [(a, b) for i, a in enumerate(free) for b in free[i + 1:]]
+#: Every permutation of up to this many free references is a relabelling the loop tries
+#: (7! - 1 = 5,039 fits); with more, those that change at most :func:`_most_changed` labels.
+MAX_PERMUTED = 7
 
 
-def _swap_candidate(data: RegistrationData, spec: RegistrationSpec) -> tuple[str, str] | None:
-    """The pair the label-swap effect would exchange next: the strongest outside evidence
-    (:func:`_swap_evidence` and the implanted-marker check), ties to the best fit.
+def _most_changed(n: int) -> int:
+    """Labels a relabelling of ``n`` > :data:`MAX_PERMUTED` references changes at most: 4 up
+    to 12 references (2,175 relabellings of 10), else 3."""
+    return 4 if n <= 12 else 3
+
+#: Relabellings whose references fit within this factor of the best one's RSS get the full
+#: evidence (held-out tests, F test, implanted markers): the symmetric alternatives of a
+#: square of references fit alike, and the implanted markers choose among them.
+SHORTLIST_RSS_FACTOR = 10.0
+SHORTLIST_MAX = 24
+
+
+def _cycles(names: list[str], perm: tuple[int, ...]) -> tuple[tuple[str, ...], ...]:
+    """The cycles (length >= 2) of ``perm`` (X-ray ``names[i]`` is CT ``names[perm[i]]``),
+    each from its first name in ``names``' order."""
+    seen, out = set(), []
+    for i in range(len(perm)):
+        if i in seen or perm[i] == i:
+            continue
+        c, j = [], i
+        while j not in seen:
+            seen.add(j)
+            c.append(names[j])
+            j = perm[j]
+        out.append(tuple(c))
+    return tuple(out)
+
+
+def relabellings(free: list[str]) -> list[tuple[tuple[str, ...], ...]]:
+    """Every relabelling of the references ``free`` the label-swap effect tries, as cycles:
+    every permutation but the identity of up to :data:`MAX_PERMUTED` references, else those
+    changing at most :func:`_most_changed` labels (exchanges, cycles of three, two exchanges,
+    cycles of four).
+
+    >>> relabellings(["a", "b", "c"])
+    [(('b', 'c'),), (('a', 'b'),), (('a', 'b', 'c'),), (('a', 'c', 'b'),), (('a', 'c'),)]
+    """
+    from itertools import combinations, permutations
+    n = len(free)
+    if n <= MAX_PERMUTED:
+        return [_cycles(free, p) for p in permutations(range(n)) if any(i != j for i, j in enumerate(p))]
+    out = []
+    for k in range(2, _most_changed(n) + 1):
+        for sub in combinations(free, k):
+            out += [_cycles(list(sub), p) for p in permutations(range(k)) if all(i != j for i, j in enumerate(p))]
+    return out
+
+
+def _free(data: RegistrationData, spec: RegistrationSpec) -> list[str]:
+    """The references in use whose labels no earlier step gave back."""
+    done = {n for c in spec.swapped for n in c}
+    return [n for n in data.names if n not in spec.moved and n not in done]
+
+
+def _swap_candidate(data: RegistrationData, spec: RegistrationSpec) -> tuple[tuple[str, ...], ...] | None:
+    """The relabelling the label-swap effect would make next: among those whose references
+    fit within :data:`SHORTLIST_RSS_FACTOR` of the best, the strongest outside evidence
+    (:func:`_swap_evidence` and the implanted-marker check), ties to the fewest labels
+    changed, then the best fit.
 
     By the references alone, exchanging the labels at both ends of one diagonal of a square
     fits as well as exchanging those of the other (a turn by 180 degrees about the square's
-    normal); the implanted markers tell them apart."""
+    normal), and turning every label by one corner as well as by three; the implanted
+    markers tell them apart."""
     try:
         before = fit_registration(data, spec)
     except ValueError:
         return None
-    best, best_key = None, None
-    for pair in _swap_pairs(data, spec):
+    rss = []
+    for cyc in relabellings(_free(data, spec)):
         try:
-            after = fit_registration(data, replace(spec, swapped=spec.swapped + (pair,)))
-        except ValueError:      # the exchange leaves a degenerate configuration
+            after = fit_registration(data, replace(spec, swapped=spec.swapped + cyc))
+        except ValueError:      # the relabelling leaves a degenerate configuration
             continue
-        ev = _with_check(_swap_evidence(data, spec, pair), _check_evidence(data, before, after))
-        key = (ev["delta_bic"], -float(np.sum(after.residuals ** 2)))
+        rss.append((float(np.sum(after.residuals ** 2)), cyc, after))
+    if not rss:
+        return None
+    rss.sort(key=lambda r: r[0])
+    floor = rss[0][0] * SHORTLIST_RSS_FACTOR + np.finfo(float).tiny
+    best, best_key = None, None
+    for r, cyc, after in [x for x in rss if x[0] <= floor][:SHORTLIST_MAX]:
+        ev = _with_check(_swap_evidence(data, spec, cyc), _check_evidence(data, before, after))
+        key = (ev["delta_bic"], -sum(len(c) for c in cyc), -r)
         if best_key is None or key > best_key:
-            best, best_key = pair, key
+            best, best_key = cyc, key
     return best
 
 
@@ -310,19 +390,28 @@ def _versus_moved(data: RegistrationData, spec: RegistrationSpec, after_spec: Re
             "p": f_sf(f, 3, dof)}
 
 
-def _swap_evidence(data: RegistrationData, spec: RegistrationSpec, pair: tuple[str, str]) -> dict:
-    """Outside evidence for exchanging the CT labels of ``pair`` (``label-swap`` in the module docstring)."""
+def _swap_evidence(data: RegistrationData, spec: RegistrationSpec, cycles: tuple[tuple[str, ...], ...]) -> dict:
+    """Outside evidence for giving back the CT labels of ``cycles`` (``label-swap`` in the module docstring)."""
     n_used = len([n for n in data.names if n not in spec.moved])
-    n_pairs = max(len(_swap_pairs(data, spec)), 1)
-    before = {n: _heldout(data, spec, n) for n in pair}
-    after_spec = replace(spec, swapped=spec.swapped + (pair,))
+    # the choice among the relabellings that change as many labels as this one or fewer: an
+    # exchange competes with the other exchanges only (as when pairs were all the effect
+    # tried), a cycle of three with those and the other cycles of three, ...
+    size = sum(len(c) for c in cycles)
+    n_pairs = max(sum(1 for r in relabellings(_free(data, spec)) if sum(len(c) for c in r) <= size), 1)
+    # the worst held-out failure among the references free to be relabelled: the same for
+    # every relabelling, so the evidence does not grow with the number of labels a
+    # relabelling touches (a cycle of four is not favoured over the exchange it ties with)
+    before = {n: _heldout(data, spec, n) for n in _free(data, spec)}
+    after_spec = replace(spec, swapped=spec.swapped + tuple(cycles))
     after = {n: _heldout(data, after_spec, n) for n in data.names if n not in spec.moved}
     failing = sorted(n for n, h in after.items() if h is not None and h["p_bonferroni"] < HELDOUT_P)
     versus = _versus_moved(data, spec, after_spec)
     held = [h["delta_bic"] for h in before.values() if h is not None]
-    note = ("held-out evidence of the worse of the two, as moving-reference would claim it, + 3 ln 3N "
-            "(no displacement parameters) - 2 ln P (P pairs to choose from); counted only when after the "
-            "exchange every reference passes its held-out test and a moved reference does not fit "
+    note = ("held-out evidence of the worst of the references free to be relabelled, as moving-reference would "
+            "claim it, "
+            "+ 3 ln 3N (no displacement parameters) - 2 ln K (K relabellings changing as many labels or fewer "
+            "to choose from); counted only when "
+            "after it every reference passes its held-out test and a moved reference does not fit "
             f"significantly better (F test, p >= {HELDOUT_P:g})")
     d = 0.0
     if failing:
@@ -331,7 +420,8 @@ def _swap_evidence(data: RegistrationData, spec: RegistrationSpec, pair: tuple[s
         note += f"; not counted: a moved reference fits significantly better (p = {versus['p']:.2g})"
     elif held:
         d = max(0.0, max(held) + 3 * np.log(3 * n_used) - 2 * np.log(n_pairs))
-    return {"delta_bic": float(d), "pair": list(pair), "n_pairs": int(n_pairs), "heldout_before": before,
+    return {"delta_bic": float(d), "cycles": [list(c) for c in cycles], "n_relabellings": int(n_pairs),
+            "heldout_before": before,
             "heldout_failing_after": failing, "versus_moved_reference": versus, "note": note}
 
 
@@ -352,14 +442,14 @@ def registration_effects(data: RegistrationData) -> list[Effect]:
         return _with_check(_outside_evidence(data, before.spec, new[0]), _check_evidence(data, before.fit, after.fit))
 
     def add_swap(spec: RegistrationSpec):
-        pair = _swap_candidate(data, spec)
-        return None if pair is None else replace(spec, swapped=spec.swapped + (pair,))
+        cyc = _swap_candidate(data, spec)
+        return None if cyc is None else replace(spec, swapped=spec.swapped + cyc)
 
     def swap_evidence(before, after) -> dict | None:
-        new = [p for p in after.spec.swapped if p not in before.spec.swapped]
+        new = tuple(c for c in after.spec.swapped if c not in before.spec.swapped)
         if not new:
             return None
-        ev = _swap_evidence(data, before.spec, new[0])
+        ev = _swap_evidence(data, before.spec, new)
         rss0 = float(np.sum(np.asarray(before.fit.residuals) ** 2))
         rss1 = float(np.sum(np.asarray(after.fit.residuals) ** 2))
         if rss1 >= rss0:
@@ -383,10 +473,11 @@ def registration_effects(data: RegistrationData) -> list[Effect]:
         # before moving-reference: when an exchange makes every reference consistent it is the
         # simpler explanation (no displacement parameters), and it wins a tie
         Effect("label-swap",
-               "two references carry each other's labels in the CT file (or in the tracking seeds): a click "
-               "order mixed up",
+               "references carry each other's labels in the CT file (or in the tracking seeds): two exchanged, or "
+               "more in a cycle; a click order mixed up",
                "two (or more) references fail their held-out prediction at the registration frame without "
-               "moving over the trial; exchanging two CT labels makes every reference consistent",
+               "moving over the trial; giving the CT labels back (an exchange or a cycle) makes every reference "
+               "consistent",
                add_swap, ("label_swaps",), evidence=swap_evidence),
         Effect("moving-reference",
                "a reference marker on the brain surface rather than the skull moves with the tissue "
@@ -420,7 +511,7 @@ def reference_checks(data: RegistrationData, spec: RegistrationSpec) -> dict:
     labels exchanged as ``spec`` has them.
     """
     out = {}
-    swapped = {n: b for a, b in spec.swapped for n, b in ((a, b), (b, a))}
+    swapped = ct_labels(spec)
     for n in data.names:
         held = _heldout(data, replace(spec, moved=()), n)
         motion = data.motion(n)
