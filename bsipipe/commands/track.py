@@ -404,24 +404,14 @@ def _seeds_outside(seed_df: pd.DataFrame, rois: dict) -> list[tuple[str, str, fl
 BLANK_LOOKAHEAD = 10
 
 
-def is_blank(img: np.ndarray) -> bool:
-    """A frame without a picture: its whole range of grey levels (max - min) is within 16
-    sd of its own pixel noise (Immerkaer's estimate), plus one level: a black or saturated
-    frame (range 0) or dark noise only (about 10 sd over a megapixel).  A frame with any
-    marker, edge or field border spans far more."""
-    from ..imaging.detect import pixel_noise
-    a = np.asarray(img)
-    rng = float(a.max()) - float(a.min())
-    return rng <= 16.0 * pixel_noise(a, step=4) + 1.0
-
-
 def _first_frames(views: dict, channel) -> tuple[dict, dict]:
     """Each view's first frame with a picture, decoded once for the seeds' check, the
     polarity and the diameter (None when it has no frame: reported later), and the views
-    whose first frame was blank (:func:`is_blank`): view -> the frame used instead, the first
+    whose first frame was blank (:func:`~bsipipe.imaging.detect.is_blank`): view -> the frame used instead, the first
     of the next :data:`BLANK_LOOKAHEAD` with a picture (frame 0 when none has one)."""
     from itertools import islice
 
+    from ..imaging.detect import is_blank
     from ..io.images import iter_frames
     out, blank = {}, {}
     for v, p in views.items():

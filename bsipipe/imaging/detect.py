@@ -411,6 +411,22 @@ def pixel_noise(frame: np.ndarray, mask: np.ndarray | None = None, step: int = 1
     return _noise_from_highpass(r)
 
 
+def is_blank(frame: np.ndarray) -> bool:
+    """A frame without a picture: its whole range of grey levels (max - min) is within 16
+    sd of its own pixel noise (1.4826 MAD of Immerkaer's high-pass / 6, on every 4th row
+    and column), plus one level: a black or saturated frame (range 0) or dark noise only
+    (about 10 sd over a megapixel).  A frame with any marker, edge or field border spans far
+    more; a noiseless one (a rendering: MAD 0) is blank only if flat.
+
+    >>> is_blank(np.zeros((64, 64), np.uint8)), is_blank(np.eye(64, dtype=np.uint8) * 200)
+    (True, False)
+    """
+    a = np.asarray(frame)
+    r = _immerkaer(a, 4).ravel().astype(np.float64)
+    sd = _MAD * float(np.median(np.abs(r - np.median(r)))) / 6.0 if r.size else 0.0
+    return float(a.max()) - float(a.min()) <= 16.0 * sd + 1.0
+
+
 def _immerkaer(img: np.ndarray, step: int = 1) -> np.ndarray:
     """Immerkaer's high-pass at pixels ``[1:-1:step, 1:-1:step]`` (float32; int32 for 8/16-bit
     frames with ``step`` > 1, exact)."""
