@@ -384,11 +384,11 @@ def read_machine_log(path: str | os.PathLike) -> MachineLog:
 
     geometry, geometry_invalid = _geometry(geometry_rows, decimal, path)
     spikes = load_spikes(values["load"])
-    load_name = normalise_name(names[roles["load"]])
     load_sign, disp_sign, sign_from = _compression_signs(
-        values["extension"], values["load"], load_name, normalise_name(names[roles["extension"]]), spikes)
+        values["extension"], values["load"], normalise_name(names[roles["load"]]),
+        normalise_name(names[roles["extension"]]), spikes)
     if sign_from == _TENSION:
-        k = _most_loaded(values["load"], spikes)
+        k = int(np.argmax(np.abs(_load_change(values["load"], spikes))))
         raise InputError(f"'{names[roles['load']]}' rises to {values['load'][k]:.4g} N: the specimen was pulled, a "
                          "tension test; machine logs are fitted as compression between platens (a tension test can "
                          "be fitted as a stress-stretch table, mode uniaxial)", path=path, line=int(line_no[k]))
@@ -675,12 +675,12 @@ def load_spikes(load) -> np.ndarray:
 _TENSION = "tension"
 
 
-def _most_loaded(load, spikes) -> int:
-    """Index of the sample most loaded away from the start (the median of the first ten
-    samples), the ``spikes`` left out."""
+def _load_change(load, spikes) -> np.ndarray:
+    """Each sample's load less the start's (the median of the first ten samples); 0 at the
+    ``spikes``, which decide nothing."""
     ok = ~spikes
     start = float(np.median(load[ok][: min(10, int(ok.sum()))])) if ok.any() else 0.0
-    return int(np.argmax(np.abs(np.where(ok, load - start, 0.0))))
+    return np.where(ok, load - start, 0.0)
 
 
 def _compression_signs(extension, load, load_name, extension_name, spikes) -> tuple[int, int, str]:
@@ -697,10 +697,8 @@ def _compression_signs(extension, load, load_name, extension_name, spikes) -> tu
     A record with no load change keeps the name's sign, else Instron's convention
     (compression negative).
     """
-    ok = ~spikes                            # a glitch or an over-range code decides nothing
-    start = float(np.median(load[ok][: min(10, int(ok.sum()))])) if ok.any() else 0.0
-    dev = np.where(ok, load - start, 0.0)
-    k = _most_loaded(load, spikes)
+    dev = _load_change(load, spikes)        # a glitch or an over-range code decides nothing
+    k = int(np.argmax(np.abs(dev)))
     scale = float(np.median(np.abs(np.diff(load)))) if load.size > 2 else 0.0
     clear = abs(dev[k]) > 10 * scale and dev[k] != 0
     data_load = int(np.sign(dev[k])) if clear else 0

@@ -11,9 +11,10 @@ The layout is XMALab's own "export 2D points" / "export 3D points" (one file, he
 XMALab numbers its cameras ``cam1, cam2, ...`` in the order they were loaded, whatever
 they are called elsewhere; the writers take the views in a given order and map them to
 ``cam1..camN`` (:func:`xmalab_cameras`, recorded by the caller), except views that are
-themselves called ``cam1..camN``, which keep their names whatever order they are given in.  Pixel coordinates are XMALab's default export
-("distorted", not offset by 1, y not inverted), which is bsipipe's convention: x to the
-right, y down, the centre of the top-left pixel at (0, 0).  XMALab writes `` , `` between
+themselves called ``cam1..camN``, which keep their names whatever order they are given in.
+Pixel coordinates are XMALab's default export ("distorted", not offset by 1, y not
+inverted), which is bsipipe's convention: x to the right, y down, the centre of the top-left
+pixel at (0, 0).  XMALab writes `` , `` between
 fields and 12 significant digits; it reads a file by splitting each line at commas and
 trimming the names, so plain commas (written here, as deepxromm and DeepLabCut's
 ``xrommtools`` do) load in XMALab and in pandas alike.  Empty fields are read as missing.
