@@ -80,8 +80,10 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
 @cli.command("fit-ogden")
 @click.argument("inputs", metavar="LOG... | TABLE.csv...", nargs=-1, required=True,
                 type=click.Path(dir_okay=False))
-@click.option("--diameter-mm", type=click.FloatRange(min=0, min_open=True), help="Specimen diameter (mm).")
-@click.option("--height-mm", type=click.FloatRange(min=0, min_open=True), help="Specimen height before contact (mm).")
+@click.option("--diameter-mm", multiple=True, type=click.FloatRange(min=0, min_open=True),
+              help="Specimen diameter (mm). Once for all logs or once per log (over the logs' metadata).")
+@click.option("--height-mm", multiple=True, type=click.FloatRange(min=0, min_open=True),
+              help="Specimen height before contact (mm). Once for all logs or once per log.")
 @click.option("--stress-stretch", is_flag=True, help="Inputs are stress-stretch tables, not machine logs.")
 @click.option("--mode", "modes", multiple=True,
               type=click.Choice(["uniaxial", "equibiaxial", "pure-shear", "simple-shear"]),

@@ -398,3 +398,32 @@ def test_a_table_with_nothing_loaded_is_exit_2(tmp_path, rows):
     p.write_text("stretch,nominal_stress_pa\n" + rows)
     r = _invoke("fit-ogden", p, "--stress-stretch", "--no-loop", "-o", tmp_path / "out")
     assert r.exit_code == 2 and "no loaded row" in r.output and "flat.csv" in r.output, r.output
+
+
+def test_two_specimens_of_different_size_get_a_diameter_and_height_each(tmp_path):
+    """Two logs of specimens 18 x 12 mm and 20 x 10 mm, no geometry in their files: before,
+    --diameter-mm and --height-mm took one value for every log, so one specimen was fitted
+    with the other's size.  Each option now takes one value per log (in the logs' order) or
+    one for all; the per-log fit recovers mu 720 Pa and alpha -4.7, one size for both does
+    not; three diameters for two logs is exit 2 naming the option."""
+    paths = []
+    for i, (d, h) in enumerate(((18.0, 12.0), (20.0, 10.0))):
+        frame, _ = synth_compression_log(diameter_mm=d, height_mm=h, seed=40 + i)
+        paths.append(write_bluehill2(frame, tmp_path / f"s{i}.csv", label=f"S{i}"))
+    out = tmp_path / "each"
+    r = _invoke("fit-ogden", *paths, "--diameter-mm", "18", "--diameter-mm", "20", "--height-mm", "12",
+                "--height-mm", "10", "--no-loop", "--bootstrap", "0", "-o", out)
+    assert r.exit_code == 0, r.output
+    d = json.loads((out / "fit.json").read_text())
+    assert abs(d["params"]["mu_pa"] / 720.0 - 1) < 0.03 and abs(d["params"]["alpha"] + 4.7) < 0.1
+    assert [(i["diameter_mm"], i["height_mm"]) for i in d["inputs"]] == [(18.0, 12.0), (20.0, 10.0)]
+    one = tmp_path / "one"
+    r = _invoke("fit-ogden", *paths, "--diameter-mm", "18", "--height-mm", "12", "--no-loop", "--bootstrap", "0",
+                "-o", one)
+    assert r.exit_code == 0, r.output
+    d1 = json.loads((one / "fit.json").read_text())
+    assert d1["metrics"]["rmse_n"] > 3 * d["metrics"]["rmse_n"]
+    r = _invoke("fit-ogden", *paths, "--diameter-mm", "18", "--diameter-mm", "20", "--diameter-mm", "19",
+                "--height-mm", "12", "-o", tmp_path / "bad")
+    assert r.exit_code == 2 and "3 diameters (--diameter-mm / diameter_mm) for 2 logs" in r.output
+    assert not (tmp_path / "bad").exists()

@@ -16,7 +16,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from pydantic import Field
+from pydantic import Field, PositiveFloat
 
 from ..config import FitConfig, load_config, validate
 from ..errors import InputError, ProcessingError
@@ -38,6 +38,10 @@ class FitOgdenConfig(FitConfig):
         None, description="given contact: crosshead displacement (mm) past the record's first sample, positive in "
                           "compression (fit.json's contact_mm frame; negative: before the first sample); one for "
                           "every log or one per log")
+    diameter_mm: PositiveFloat | list[PositiveFloat] | None = Field(
+        None, description="specimen diameter (cylinder); one for every log or one per log")
+    height_mm: PositiveFloat | list[PositiveFloat] | None = Field(
+        None, description="specimen height before contact; one for every log or one per log")
 
 
 def _merge_config(config_path, options: dict) -> tuple[FitOgdenConfig, set]:
@@ -53,9 +57,14 @@ def _merge_config(config_path, options: dict) -> tuple[FitOgdenConfig, set]:
     return cfg, explicit
 
 
-def _given_contacts(cfg: FitOgdenConfig, paths: Sequence[str]) -> list[float | None]:
-    """The given contact of each log (``None``: detect it)."""
-    given = cfg.contact_mm
+#: The keys given once for every log or once per log, and what one value is.
+PER_LOG = {"contact_mm": "contacts", "diameter_mm": "diameters", "height_mm": "heights"}
+
+
+def _per_log(cfg: FitOgdenConfig, key: str, paths: Sequence[str]) -> list[float | None]:
+    """Each log's value of ``key`` (:data:`PER_LOG`: one for all, or one per log in order;
+    ``None``: not given)."""
+    given = getattr(cfg, key)
     if given is None:
         return [None] * len(paths)
     if isinstance(given, (int, float)):
@@ -63,8 +72,9 @@ def _given_contacts(cfg: FitOgdenConfig, paths: Sequence[str]) -> list[float | N
     if len(given) == 1:
         return [float(given[0])] * len(paths)
     if len(given) != len(paths):
-        raise InputError(f"{len(given)} contacts (--contact-mm / contact_mm) for {len(paths)} logs: give one for "
-                         f"every log, or one for all", path=paths[0], key="contact_mm")
+        opt = "--" + key.replace("_", "-")
+        raise InputError(f"{len(given)} {PER_LOG[key]} ({opt} / {key}) for {len(paths)} logs: give one for "
+                         f"every log, or one for all", path=paths[0], key=key)
     return [float(g) for g in given]
 
 
@@ -98,15 +108,16 @@ def _loading_speed(time_s: np.ndarray, disp_mm: np.ndarray, start: int) -> float
     return float(dd[~hold].sum() / dt[~hold].sum())
 
 
-def _geometry(name: str, cfg: FitConfig, explicit: set, logfile) -> tuple[dict, dict]:
-    """Diameter and height for one log: options/config first, then the log's metadata.
+def _geometry(name: str, given: dict, logfile) -> tuple[dict, dict]:
+    """Diameter and height for one log: options/config first (``given``: this log's value of
+    each, None where not given), then the log's metadata.
 
     A cylinder's height is its ``Thickness`` in Bluehill's compression templates
     (``Dimensions : Thickness``): the metadata's thickness is the height where the log
     states no height."""
     out, source = {}, {}
     for key in ("diameter_mm", "height_mm"):
-        v = getattr(cfg, key)
+        v = given[key]
         if v is not None:
             out[key], source[key] = float(v), "option or config"
         elif key in logfile.geometry:
@@ -183,15 +194,16 @@ def _check_travel(path, disp, contact_mm: float, geo: dict, given: bool, geo_sou
 MAX_SPIKES = 5
 
 
-def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig, explicit: set):
+def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig):
     from ..io.machine_log import read_machine_log
     from ..mechanics.contact import ContactNotInRecord, detect_contact, loading_ramps
     from ..mechanics.fit import MIN_UNLOADED_SAMPLES, LogData
 
     logs, inputs = [], []
-    for p, given in zip(paths, _given_contacts(cfg, paths)):
+    dims = {k: _per_log(cfg, k, paths) for k in ("diameter_mm", "height_mm")}
+    for i, (p, given) in enumerate(zip(paths, _per_log(cfg, "contact_mm", paths))):
         ml = read_machine_log(p)
-        geo, geo_source = _geometry(str(p), cfg, explicit, ml)
+        geo, geo_source = _geometry(str(p), {k: v[i] for k, v in dims.items()}, ml)
         disp, force = ml.compression()
         time_s = ml.time_s
         rows = np.arange(len(ml))                # the record's sample of each one kept
@@ -511,7 +523,8 @@ def _refined_contact(final, i: int, n_logs: int, detected_mm: float, given: bool
 
 
 def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_stretch: bool = False,
-        modes: Sequence[str] = (), diameter_mm: float | None = None, height_mm: float | None = None,
+        modes: Sequence[str] = (), diameter_mm: float | Sequence[float] | None = None,
+        height_mm: float | Sequence[float] | None = None,
         model: str | None = None, prony: int | None = None, boundary: str | None = None,
         loop: bool | None = None, width_csv: str | os.PathLike | None = None,
         config: str | os.PathLike | None = None, max_strain: float | None = None,
@@ -519,9 +532,10 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
         contact_mm: float | Sequence[float] | None = None, progress: bool = False) -> dict:
     """Run fit-ogden; returns the ``fit.json`` dict (also written to ``out``).
 
-    ``None`` means "not given": the config's value, else FitConfig's default.  ``contact_mm``
-    gives each log's contact (one value for all or one per log; :class:`FitOgdenConfig`)
-    instead of detecting it; the fit then holds it there (the loop's ``contact-offset`` may
+    ``None`` means "not given": the config's value, else FitConfig's default.
+    ``diameter_mm`` and ``height_mm`` are one value for all logs or one per log (over the
+    logs' metadata).  ``contact_mm`` gives each log's contact (one value for all or one per
+    log; :class:`FitOgdenConfig`) instead of detecting it; the fit then holds it there (the loop's ``contact-offset`` may
     still free it).
 
     Raises
@@ -540,8 +554,10 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
     if not paths:
         raise InputError("no input file given (LOG ... or TABLE.csv --stress-stretch)")
     _check_distinct(paths)
-    if isinstance(contact_mm, (list, tuple)):
-        contact_mm = [float(c) for c in contact_mm] or None         # click's repeated option: () is "not given"
+    # click's repeated options: () is "not given"; one diameter or height is one number
+    contact_mm, diameter_mm, height_mm = ([float(c) for c in v] or None if isinstance(v, (list, tuple)) else v
+                                          for v in (contact_mm, diameter_mm, height_mm))
+    diameter_mm, height_mm = (v[0] if isinstance(v, list) and len(v) == 1 else v for v in (diameter_mm, height_mm))
     cfg, explicit = _merge_config(config, {"diameter_mm": diameter_mm, "height_mm": height_mm, "model": model,
                                            "prony": prony, "boundary": boundary, "loop": loop,
                                            "max_strain": max_strain, "bootstrap": bootstrap, "seed": seed,
@@ -567,7 +583,7 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
             spec0 = ForceModelSpec(law=cfg.model, prony=cfg.prony, boundary=cfg.boundary)
         except ValueError as e:
             raise InputError(str(e), path=config) from None
-        data, input_info = _read_logs(paths, cfg, explicit)
+        data, input_info = _read_logs(paths, cfg)
         kind = "logs"
     width = _read_width(width_csv) if width_csv is not None else None
 
