@@ -468,24 +468,39 @@ def test_cli_track_polarity_without_seeds(tmp_path, bright):
     """Automatic mode (no seeds) on five beads rendered dark (raw) and bright (inverted):
     the first frame's whole-frame detections of SNR 6 or more in each polarity decide, and
     every bead is tracked in every frame within 0.3 px either way."""
-    import cv2
-    rng = np.random.default_rng(4)
-    size, n = 160, 4
-    B = np.array([[40.3, 50.2], [110.6, 45.8], [80.1, 80.4], [50.7, 120.3], [120.2, 115.6]])
-    field = RayField(bead_camera(size))
-    frames = tmp_path / "frames"
-    frames.mkdir()
-    truth = [B + [0.5 * i, 0.3 * i] for i in range(n)]
-    for i in range(n):
-        cv2.imwrite(str(frames / f"f{i}.png"), render_beads(truth[i], 5.0, size, rng, field=field, bright=bright))
+    n = 4
+    frames, truth = _five_beads(tmp_path, 160, n, 5.0, (0.5, 0.3), seed=4, bright=bright)
     out = tmp_path / "out"
     r = CliRunner().invoke(cli, ["track", "--view", f"cam1={frames}", "--diameter-px", "5", "-o", str(out)])
     assert r.exit_code == 0, r.output
     j = json.loads((out / "track.json").read_text())
     assert j["polarity"] == ("bright" if bright else "dark") and j["polarity_source"].startswith("auto: no seeds")
+    _assert_on_the_beads(out, truth, range(n))
+
+
+def _five_beads(tmp_path, size: int, n: int, dia: float, step, *, seed: int, bright: bool = False,
+                blank_first: bool = False):
+    """Five beads of ``dia`` px moving ``step`` px a frame over ``n`` frames of ``size`` px
+    (PNG files in ``tmp_path/frames``; frame 0 black with ``blank_first``); returns the
+    folder and the true positions per frame."""
+    import cv2
+    rng = np.random.default_rng(seed)
+    B = np.array([[0.25, 0.31], [0.69, 0.29], [0.5, 0.5], [0.32, 0.75], [0.75, 0.73]]) * size + [0.3, 0.2]
+    field = RayField(bead_camera(size))
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    truth = [B + np.multiply(step, i) for i in range(n)]
+    for i in range(n):
+        img = render_beads(truth[i], dia, size, rng, field=field, bright=bright)
+        cv2.imwrite(str(frames / f"f{i}.png"), np.zeros_like(img) if blank_first and i == 0 else img)
+    return frames, truth
+
+
+def _assert_on_the_beads(out, truth, frames) -> None:
+    """Every bead found in each of ``frames`` (and no other), each within 0.3 px of a bead."""
     m2 = pd.read_csv(out / "markers2d.csv")
     m2 = m2[m2["found"]]
-    assert len(m2) == 5 * n
+    assert sorted(set(m2["frame"])) == list(frames) and len(m2) == 5 * len(frames)
     for _, row in m2.iterrows():
         assert np.hypot(*(truth[row["frame"]] - [row["x_px"], row["y_px"]]).T).min() < 0.3
 
@@ -497,22 +512,13 @@ def test_cli_track_blank_first_frame(tmp_path, seeded):
     4 px default, a third of the beads.  They are now probed on frame 1, a blank-first-frame
     warning says so, and every bead is tracked from frame 1 within 0.3 px.  Seeded, frame 0
     is also named by frames-without-markers (the seeds put every marker there)."""
-    import cv2
-    rng = np.random.default_rng(7)
-    size, n, dia = 200, 6, 9.0
-    B = np.array([[50.3, 60.2], [140.6, 55.8], [100.1, 100.4], [60.7, 150.3], [150.2, 145.6]])
-    field = RayField(bead_camera(size))
-    frames = tmp_path / "frames"
-    frames.mkdir()
-    truth = [B + [0.6 * i, 0.4 * i] for i in range(n)]
-    for i in range(n):
-        img = render_beads(truth[i], dia, size, rng, field=field)
-        cv2.imwrite(str(frames / f"f{i}.png"), np.zeros_like(img) if i == 0 else img)
+    n, dia = 6, 9.0
+    frames, truth = _five_beads(tmp_path, 200, n, dia, (0.6, 0.4), seed=7, blank_first=True)
     out = tmp_path / "out"
     args = ["track", "--view", f"cam1={frames}", "--fps", "2", "-o", str(out)]
     if seeded:
         seeds = tmp_path / "seeds.csv"
-        pd.DataFrame([("cam1", f"M{j}", *B[j]) for j in range(len(B))],
+        pd.DataFrame([("cam1", f"M{j}", *truth[0][j]) for j in range(5)],
                      columns=["view", "marker", "x_px", "y_px"]).to_csv(seeds, index=False)
         args += ["--seeds", str(seeds)]
     r = CliRunner().invoke(cli, args)
@@ -525,11 +531,7 @@ def test_cli_track_blank_first_frame(tmp_path, seeded):
         assert w["frames-without-markers"]["frames"] == {"cam1": [0]}
     else:
         assert "frames-without-markers" not in w
-    m2 = pd.read_csv(out / "markers2d.csv")
-    m2 = m2[m2["found"]]
-    assert sorted(set(m2["frame"])) == list(range(1, n)) and len(m2) == 5 * (n - 1)
-    for _, row in m2.iterrows():
-        assert np.hypot(*(truth[row["frame"]] - [row["x_px"], row["y_px"]]).T).min() < 0.3
+    _assert_on_the_beads(out, truth, range(1, n))
 
 
 def test_cli_track_polarity_given_without_seeds_is_checked(tmp_path):
