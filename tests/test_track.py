@@ -1309,20 +1309,29 @@ def test_overlay_draws_the_region_searched():
 
 def test_cli_names_frames_without_their_picture(tmp_path):
     """``bsipipe track`` on frames where two frames are dark noise only (missed exposures of
-    pulsed fluoroscopy): a ``frames-without-markers`` warning names them, the markers are
-    followed across them; a marker hidden in one frame while the others are seen is not such
-    a frame, nor are frames before the first or after the last in which markers were found."""
+    pulsed fluoroscopy) and one has its picture but no bead (everything lost at once, as in
+    a jolt): a ``frames-without-markers`` warning names the three, the markers are followed
+    across them, and it tells the two without a picture (``without_picture``) from the one
+    with (``with_picture``: every marker lost at once; it had been worded as a missed
+    exposure too); a marker hidden in one frame while the others are seen is not such a
+    frame, nor are frames before the first or after the last in which markers were found."""
     frames, truth = crossing_sequence(n=14)
     rng = np.random.default_rng(3)
     for k in (4, 9):
         frames[k] = np.clip(np.rint(rng.normal(12, 2, frames[k].shape)), 0, 255).astype(frames[k].dtype)
+    frames[7] = render_beads(np.full((3, 2), -60.0), 4.0, frames[7].shape[0], rng,
+                             field=RayField(bead_camera(frames[7].shape[0])))
     out = _track_crossing(tmp_path, frames, truth)
-    w = [w for w in json.loads((out / "track.json").read_text())["warnings"] if w["code"] == "frames-without-markers"]
-    assert len(w) == 1 and w[0]["frames"] == {"cam1": [4, 9]}
+    j = json.loads((out / "track.json").read_text())
+    w = [w for w in j["warnings"] if w["code"] == "frames-without-markers"]
+    assert len(w) == 1 and w[0]["frames"] == {"cam1": [4, 7, 9]}
+    assert w[0]["without_picture"] == {"cam1": [4, 9]} and w[0]["with_picture"] == {"cam1": [7]}
+    assert "every marker was lost at once" in w[0]["message"] and "without their picture" in w[0]["message"]
+    assert j["views"]["cam1"]["frames_without_picture"] == [4, 9]
     t = pd.read_csv(out / "markers2d.csv")
     j = t["marker"].map({"A": 0, "B": 1, "C": 2}).to_numpy()
     err = np.hypot(t["x_px"] - truth[t["frame"], j, 0], t["y_px"] - truth[t["frame"], j, 1])
-    assert not t.loc[t["frame"].isin([4, 9]), "found"].any()
+    assert not t.loc[t["frame"].isin([4, 7, 9]), "found"].any()
     assert t.loc[t["frame"] > 9, "found"].sum() >= 10 and err[t["found"].to_numpy()].max() < 0.5
 
     from bsipipe.commands.track import _frames_without_markers

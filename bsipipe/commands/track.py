@@ -642,6 +642,7 @@ def _track_views(cfg, views, seed_df, d: dict, det, tk, progress: bool, rois: di
     :func:`~bsipipe.io.images.prefetched` for every source, so videos and stacks overlap too);
     returns the per-view tables, the events, the per-view info, each view's first frame (for
     the overlay figure) and the sha256 of every frame file (from the bytes decoded)."""
+    from ..imaging.detect import is_blank
     from ..imaging.track import track_view
     from ..io.images import count_frames, decode_workers, iter_frames, prefetched
 
@@ -662,13 +663,21 @@ def _track_views(cfg, views, seed_df, d: dict, det, tk, progress: bool, rois: di
         except Exception:  # a count is only for the progress bar
             n = None
         bar = _progress(n, v, progress)
-        state = {"n": 0, "shape": None}
+        state = {"n": 0, "shape": None, "range": 0.0, "blank": []}
 
         def on_frame(i, img, v=v, bar=bar, state=state):
             if state["n"] == 0:
                 first_images[v] = np.array(img, copy=True)
                 state["shape"] = list(img.shape)
             state["n"] += 1
+            # frames without a picture, for the frames-without-markers warning: only a frame
+            # whose sampled range falls to a quarter of the widest seen so far is tested whole
+            sub = img[::8, ::8]
+            r = float(sub.max()) - float(sub.min())
+            if r <= 0.25 * state["range"] or state["range"] == 0.0:
+                if is_blank(img):
+                    state["blank"].append(int(i))
+            state["range"] = max(state["range"], r)
             bar.update(1)
 
         try:
@@ -684,7 +693,7 @@ def _track_views(cfg, views, seed_df, d: dict, det, tk, progress: bool, rois: di
         tables.append(res.table)
         events.extend(res.events)
         info[v] = {"path": path, "n_frames": state["n"], "frame_shape_px": state["shape"], "field_of_view": res.fov,
-                   "settings": res.settings}
+                   "settings": res.settings, "frames_without_picture": state["blank"]}
         nf = int(res.table["found"].sum())
         log.info("track: %s: %d frames, %d markers, %d of %d positions found, %d events", v, state["n"],
                  res.table["marker"].nunique(), nf, len(res.table), len(res.events))
@@ -869,14 +878,26 @@ def _sequence_warnings(table: pd.DataFrame, events: list[dict], cfg, views, info
         table = _missing_frame_rows(table, missing, cfg.fps, views)
     empty = _frames_without_markers(table, seeded)
     if empty:
+        # which of them have no picture at all (black, flashed, dark noise: tested while tracking)
+        dark = {v: [f for f in fr if f in set(info[v].get("frames_without_picture") or ())] for v, fr in empty.items()}
+        dark = {v: fr for v, fr in dark.items() if fr}
+        lit = {v: [f for f in fr if f not in set(dark.get(v, ()))] for v, fr in empty.items()}
+        lit = {v: fr for v, fr in lit.items() if fr}
+        why = []
+        if dark:
+            why.append(("" if not lit else _frames_listed(dark) + ": ") + "frames without their picture (a missed "
+                       "exposure, a black or flashed frame)")
+        if lit:
+            why.append(("" if not dark else _frames_listed(lit) + ": ") + "frames with a picture in which every "
+                       "marker was lost at once (a jolt of the head or the C-arm, motion blur, or something over the "
+                       "field: look at them)")
         out.append(warning(
             "frames-without-markers",
             "track: frames in which no marker was found, between frames where they were"
             + (" or where the seeds put them" if seeded else "") + " ("
-            + _frames_listed(empty) + "): a frame without its picture (a missed exposure, a black or flashed frame) more likely than "
-              "every marker hidden at once; the markers were followed across them (lost and refound events), "
-              "the frames have no 3-D point from that view",
-            log, frames=empty))
+            + _frames_listed(empty) + "): " + "; ".join(why) + "; the markers were followed across them (lost and "
+              "refound events), the frames have no 3-D point from that view",
+            log, frames=empty, without_picture=dark, with_picture=lit))
     counts = {v: info[v]["n_frames"] for v in views}
     last = {v: int(table.loc[table["view"] == v, "frame"].max()) for v in views}
     if len(set(counts.values())) > 1 and len(set(last.values())) > 1:
