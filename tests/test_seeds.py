@@ -34,7 +34,8 @@ def test_a_name_with_a_comma_is_refused_naming_its_line(tmp_path):
 def test_xmalab_seeds_views_called_camN_match_by_name():
     """Views called cam1 and cam2 keep their names whatever order they are given in: an
     XMALab seeds file's cam1 columns seed the view called cam1 (it had seeded the first view
-    given, here cam2), and the XMALab 2-D file written back holds cam1 first."""
+    given, here cam2), and the XMALab 2-D file written back holds cam1 first; a lone view
+    called cam2 is the file's cam2."""
     from bsipipe.io.xmalab import format_xmalab_2d, read_xmalab_2d, xmalab_cameras
     src = XRAY / "sample_frame_input.csv"
     ref = read_xmalab_2d(src)
@@ -46,6 +47,12 @@ def test_xmalab_seeds_views_called_camN_match_by_name():
             a = s[s["view"] == v].set_index("marker")[["x_px", "y_px"]].sort_index()
             b = ref[ref["view"] == v].set_index("marker")[["x_px", "y_px"]].sort_index()
             pd.testing.assert_frame_equal(a, b, check_dtype=False)
+    # a lone view called cam2 takes the file's cam2 columns (it had taken cam1's)
+    s = read_seeds(src, ["cam2"])
+    assert set(s["view"]) == {"cam2"}
+    pd.testing.assert_frame_equal(s.set_index("marker")[["x_px", "y_px"]].sort_index(),
+                                  ref[ref["view"] == "cam2"].set_index("marker")[["x_px", "y_px"]].sort_index(),
+                                  check_dtype=False)
     # other names: the N-th view given is camN, as XMALab numbers the cameras it loads
     assert xmalab_cameras(["lateral", "dorsal"]) == {"cam1": "lateral", "cam2": "dorsal"}
     assert xmalab_cameras(["cam2", "dorsal"]) == {"cam1": "cam2", "cam2": "dorsal"}

@@ -5,7 +5,7 @@ Two forms are read (:func:`read_seeds`):
 - ``seeds.csv``: one row per view and marker, columns ``view,marker,x_px,y_px`` (pixels,
   x to the right, y down, the centre of the top-left pixel at (0, 0));
 - an XMALab 2-D point CSV (:mod:`bsipipe.io.xmalab`), as a user clicks markers in XMALab:
-  its first row (frame 0), ``camN`` the N-th view given (views called ``cam1..camN``
+  its first row (frame 0), ``camN`` the N-th view given (views all called ``camN``
   themselves are matched by name: :func:`bsipipe.io.xmalab.xmalab_cameras`).  Markers the file places only in
   later frames are not seeds; they are listed in ``attrs["later"]``, for a warning.
 

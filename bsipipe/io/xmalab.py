@@ -10,8 +10,8 @@ The layout is XMALab's own "export 2D points" / "export 3D points" (one file, he
 
 XMALab numbers its cameras ``cam1, cam2, ...`` in the order they were loaded, whatever
 they are called elsewhere; the writers take the views in a given order and map them to
-``cam1..camN`` (:func:`xmalab_cameras`, recorded by the caller), except views that are
-themselves called ``cam1..camN``, which keep their names whatever order they are given in.
+``cam1..camN`` (:func:`xmalab_cameras`, recorded by the caller), except views that are all
+called ``camN`` themselves, which keep their names whatever order they are given in.
 Pixel coordinates are XMALab's default export ("distorted", not offset by 1, y not
 inverted), which is bsipipe's convention: x to the right, y down, the centre of the top-left
 pixel at (0, 0).  XMALab writes `` , `` between
@@ -57,20 +57,23 @@ def _positions(keys, order) -> np.ndarray:
 def xmalab_cameras(views: Sequence[str]) -> dict[str, str]:
     """XMALab's camera name of each view, in XMALab's column order (``{"cam1": view, ...}``).
 
-    The N-th view given is ``camN``, except when the views are called ``cam1..camN``
-    themselves (in any order): each is then its own camera, so ``--view cam2=... --view
-    cam1=...`` reads and writes ``cam1`` as the view called ``cam1``.
+    The N-th view given is ``camN``, except when every view is called ``camN`` itself (in
+    any order, numbers distinct): each is then its own camera, so ``--view cam2=... --view
+    cam1=...`` reads and writes ``cam1`` as the view called ``cam1``, and a lone view called
+    ``cam2`` takes an XMALab file's ``cam2`` columns.
 
     >>> xmalab_cameras(["lateral", "dorsal"])
     {'cam1': 'lateral', 'cam2': 'dorsal'}
     >>> xmalab_cameras(["cam2", "cam1"])
     {'cam1': 'cam1', 'cam2': 'cam2'}
+    >>> xmalab_cameras(["cam2"])
+    {'cam2': 'cam2'}
     """
     views = list(views)
-    names = [f"cam{i + 1}" for i in range(len(views))]
-    if sorted(views) == sorted(names):
-        return {n: n for n in names}
-    return dict(zip(names, views))
+    nums = [int(m.group(1)) if (m := re.fullmatch(r"cam(\d+)", v)) else None for v in views]
+    if views and None not in nums and len(set(nums)) == len(nums) and min(nums) >= 1:
+        return {f"cam{n}": v for n, v in sorted(zip(nums, views))}
+    return {f"cam{i + 1}": v for i, v in enumerate(views)}
 
 
 def format_xmalab_2d(points: pd.DataFrame, views: Sequence[str], markers: Sequence[str] | None = None,
