@@ -879,10 +879,12 @@ def _sequence_warnings(table: pd.DataFrame, events: list[dict], cfg, views, info
     empty = _frames_without_markers(table, seeded)
     if empty:
         # which of them have no picture at all (black, flashed, dark noise: tested while tracking)
-        dark = {v: [f for f in fr if f in set(info[v].get("frames_without_picture") or ())] for v, fr in empty.items()}
-        dark = {v: fr for v, fr in dark.items() if fr}
-        lit = {v: [f for f in fr if f not in set(dark.get(v, ()))] for v, fr in empty.items()}
-        lit = {v: fr for v, fr in lit.items() if fr}
+        dark: dict[str, list[int]] = {}
+        lit: dict[str, list[int]] = {}
+        for v, fr in empty.items():
+            no_picture = set(info[v].get("frames_without_picture") or ())
+            for f in fr:
+                (dark if f in no_picture else lit).setdefault(v, []).append(f)
         why = []
         if dark:
             why.append(("" if not lit else _frames_listed(dark) + ": ") + "frames without their picture (a missed "
