@@ -535,8 +535,8 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
     ``None`` means "not given": the config's value, else FitConfig's default.
     ``diameter_mm`` and ``height_mm`` are one value for all logs or one per log (over the
     logs' metadata).  ``contact_mm`` gives each log's contact (one value for all or one per
-    log; :class:`FitOgdenConfig`) instead of detecting it; the fit then holds it there (the loop's ``contact-offset`` may
-    still free it).
+    log; :class:`FitOgdenConfig`) instead of detecting it; the fit then holds it there (the
+    loop's ``contact-offset`` may still free it).
 
     Raises
     ------

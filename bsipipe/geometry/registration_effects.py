@@ -32,16 +32,18 @@ positions in the registration frame F; its residual is the 3N coordinates of
     more, fail their held-out prediction) but no motion over the trial; giving the CT labels
     back makes every reference consistent.  No continuous parameter: the loop tries every
     relabelling of the references in use (:func:`relabellings`: every permutation of up to
-    :data:`MAX_PERMUTED` references, else those moving two or three) and keeps the one with
+    :data:`MAX_PERMUTED` references, else those changing at most four labels, three beyond
+    twelve references) and keeps the one with
     the strongest outside evidence, then the best fit (reported as ``label_swaps``, one
     cycle each: a pair, or ``[a, b, c]`` for X-ray a = CT b, b = c, c = a; ties to the
     fewest labels changed).  Outside evidence: the held-out evidence the moving-reference
-    effect would claim for the worst of the references free to be relabelled, plus :math:`3 \ln 3N` (the three parameters a moved
-    reference costs and a relabelling does not) minus :math:`2 \ln K` (the choice among the
-    :math:`K` relabellings tried that change as many labels or fewer: an exchange competes
-    with the :math:`N(N-1)/2` exchanges only), counted only when after it no reference fails its
-    held-out test (Bonferroni 1 %) and the best moved-reference fit is not significantly
-    better (an F test with the moved reference's three parameters, 1 %); and (c).  With four
+    effect would claim for the worst of the references free to be relabelled, plus
+    :math:`3 \ln 3N` (the three parameters a moved reference costs and a relabelling does
+    not) minus :math:`2 \ln K` (the choice among the :math:`K` relabellings tried that
+    change as many labels or fewer: an exchange competes with the :math:`N(N-1)/2`
+    exchanges only), counted only when after it no reference fails its held-out test
+    (Bonferroni 1 %) and the best moved-reference fit is not significantly better (an F
+    test with the moved reference's three parameters, 1 %); and (c).  With four
     references at the corners of a square, an exchange across a diagonal and a moved
     reference fit the references about equally (a turn by 180 degrees about the other
     diagonal); only (c) tells them apart.
