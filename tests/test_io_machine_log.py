@@ -352,7 +352,8 @@ def test_results_table_of_two_specimens_leaves_a_differing_dimension_unknown(tmp
     """A Bluehill 3 export whose results table lists two specimens: the first row's diameter
     had been taken for the log without a word.  Where the rows agree (height 12 mm) the
     dimension stands; where they differ (18 and 20 mm) it is unknown, and fit-ogden without
-    --diameter-mm says so naming the line (exit 2); with the option the log fits."""
+    --diameter-mm says so naming the line (exit 2); with the option the log fits.  A log that
+    states its specimen's label takes the table's row of that label."""
     text = (LOGS / "bluehill3_results_table.csv").read_text()
     two = text.replace('"1","brain 2","18.00","12.00","0.00166"\n',
                        '"1","brain 2","18.00","12.00","0.00166"\n"2","brain 3","20.00","12.00","0.00170"\n')
@@ -365,6 +366,17 @@ def test_results_table_of_two_specimens_leaves_a_differing_dimension_unknown(tmp
     assert "18 and 20 mm" in why and line == 5
     one = read_machine_log(LOGS / "bluehill3_results_table.csv")
     assert one.geometry["diameter_mm"] == pytest.approx(18.0) and not one.geometry_invalid
+    # the log stating its own specimen's label (Bluehill's "Text Inputs : Specimen label"):
+    # the results table's row of that label is the log's, whichever row it is
+    for label, d in (("brain 3", 20.0), ("brain 2", 18.0)):
+        p2 = tmp_path / f"labelled_{d:g}.csv"
+        p2.write_text(f'"Text Inputs : Specimen label","{label}"\n\n' + two)
+        lab = read_machine_log(p2)
+        assert lab.geometry["diameter_mm"] == pytest.approx(d) and not lab.geometry_invalid, lab.geometry_invalid
+        assert lab.geometry["height_mm"] == pytest.approx(12.0)
+    p3 = tmp_path / "other_label.csv"
+    p3.write_text('"Text Inputs : Specimen label","brain 9"\n\n' + two)       # no such row: still unknown
+    assert "diameter_mm" in read_machine_log(p3).geometry_invalid
 
     from click.testing import CliRunner
 

@@ -66,6 +66,8 @@ _DELIMITERS = (",", ";", "\t", None)  # None: runs of white space
 _META = re.compile(r"^(?P<key>[^:]+?)\s+:\s+(?P<sub>.+)$")
 _GEOMETRY = re.compile(r"^(?:specimen |sample |initial |original |gauge )?"
                        r"(?P<what>diameter|height|thickness|width|length)$")
+#: A results table's column naming each row's specimen.
+_LABEL_NAMES = ("specimen label", "sample label", "specimen name", "sample name", "specimen id")
 _ZIP_MAGIC = b"PK\x03\x04"                            # .xlsx (and any zip archive)
 _OLE2_MAGIC = b"\xd0\xcf\x11\xe0\xa1\xb1\x1a\xe1"      # .xls
 _HEADER_SEARCH_LINES = 5000  # the names row comes after at most a preamble and results tables
@@ -382,7 +384,8 @@ def read_machine_log(path: str | os.PathLike) -> MachineLog:
         if roles.get("segment") == j and np.all(np.isfinite(col)) and np.all(col == np.round(col)):
             segment = col.astype(np.int64)
 
-    geometry, geometry_invalid = _geometry(geometry_rows, decimal, path)
+    label = next((str(metadata[k]).strip() for k in metadata if normalise_name(k) in _LABEL_NAMES), None)
+    geometry, geometry_invalid = _geometry(_rows_of(geometry_rows, label), decimal, path)
     spikes = load_spikes(values["load"])
     load_sign, disp_sign, sign_from = _compression_signs(
         values["extension"], values["load"], normalise_name(names[roles["load"]]),
@@ -559,6 +562,9 @@ def _read_preamble(lines: list[str], delim):
                   and all(c.startswith(("(", "[")) or is_known_unit(c) for c in filled)):
                 table["units"] = [clean_unit(c) for c in cells]
             else:
+                # the row's specimen, where the table names it (to match the log's own label)
+                lab = next((j for j, nm in enumerate(table["names"]) if normalise_name(nm) in _LABEL_NAMES), None)
+                row_label = cells[lab].strip() if lab is not None and lab < len(cells) and cells[lab] else None
                 for j, name in enumerate(table["names"]):
                     if not name or j >= len(cells) or not cells[j]:
                         continue
@@ -569,13 +575,23 @@ def _read_preamble(lines: list[str], delim):
                     m = _GEOMETRY.match(normalise_name(name))
                     if m and unit:
                         # a later row is another specimen's: kept to tell whether it agrees
-                        geometry_rows.append((m.group("what"), cells[j], unit, i + 1, table["n"]))
+                        geometry_rows.append((m.group("what"), cells[j], unit, i + 1, table["n"], row_label))
                 table["n"] += 1
             continue
         if 2 <= len(filled) <= 3 and cells[0] and not looks_numeric(cells[0]):
             put(cells[0], cells[1] if len(cells) > 1 else "", cells[2] if len(cells) > 2 else "",
                 i + 1)
     return metadata, geometry_rows, raw_marker
+
+
+def _rows_of(rows: list[tuple], label: str | None) -> list[tuple]:
+    """The geometry rows of the log's own specimen: where the log states its label (``Text
+    Inputs : Specimen label``) and a results table labels its rows, that row (as the log's
+    own) and no other table row; else every row as read."""
+    if label is None or not any(len(r) > 5 and r[5] == label for r in rows):
+        return rows
+    return [r[:4] if len(r) > 5 and r[5] == label else r for r in rows if not (len(r) > 5 and r[5] is not None
+                                                                              and r[5] != label)]
 
 
 def _length_or_none(value, unit, decimal) -> float | None:
