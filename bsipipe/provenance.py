@@ -167,7 +167,6 @@ def check_output_folder(out: str | os.PathLike) -> None:
                 raise InputError(f"cannot make the output folder {p}: {parent} is not writable", path=parent)
             # the permission bits can say yes where the file system says no (/proc, a read-only
             # mount, a full disk): a folder is made there and removed again
-            import tempfile
             try:
                 os.rmdir(tempfile.mkdtemp(prefix=".bsipipe-probe-", dir=parent))
             except OSError as e:

@@ -210,7 +210,7 @@ def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig):
         spikes = ml.spikes
         record: dict = {"n_record": int(len(ml))}
         if spikes.any():
-            lines = [ml.line_of(i) for i in np.flatnonzero(spikes)]
+            lines = [ml.line_of(k) for k in np.flatnonzero(spikes)]
             if spikes.sum() > max(MAX_SPIKES, 0.01 * len(ml)):
                 raise InputError(f"{int(spikes.sum())} load samples are over-range codes (|F| >= 1e30) or "
                                  f"single-sample spikes (lines {listed(lines, 8)}): the load channel did not "
@@ -452,10 +452,10 @@ def _stress_sign_turned(input_info: list[dict]) -> list[dict]:
     """``stress-sign`` warnings: a table that wrote its loaded rows with the sign opposite to the
     laws' (compression positive) is fitted with its sign turned, and said so."""
     from ..quality import warning
-    return [warning("stress-sign", f"fit-ogden: {Path(info['path']).name}: every loaded {', '.join(info['stress_sign_turned'])} "
-                    "row has the stress's sign opposite to its strain's (compression written positive): fitted with "
-                    "the sign turned (tension positive, compression negative)", log, path=str(info["path"]),
-                    modes=info["stress_sign_turned"])
+    return [warning("stress-sign", f"fit-ogden: {Path(info['path']).name}: every loaded "
+                    f"{', '.join(info['stress_sign_turned'])} row has the stress's sign opposite to its strain's "
+                    "(compression written positive): fitted with the sign turned (tension positive, compression "
+                    "negative)", log, path=str(info["path"]), modes=info["stress_sign_turned"])
             for info in input_info if info.get("stress_sign_turned")]
 
 

@@ -407,8 +407,9 @@ BLANK_LOOKAHEAD = 10
 def _first_frames(views: dict, channel) -> tuple[dict, dict]:
     """Each view's first frame with a picture, decoded once for the seeds' check, the
     polarity and the diameter (None when it has no frame: reported later), and the views
-    whose first frame was blank (:func:`~bsipipe.imaging.detect.is_blank`): view -> the frame used instead, the first
-    of the next :data:`BLANK_LOOKAHEAD` with a picture (frame 0 when none has one)."""
+    whose first frame was blank (:func:`~bsipipe.imaging.detect.is_blank`): view -> the frame
+    used instead, the first of the next :data:`BLANK_LOOKAHEAD` with a picture (frame 0 when
+    none has one)."""
     from itertools import islice
 
     from ..imaging.detect import is_blank
@@ -945,8 +946,9 @@ def _sequence_warnings(table: pd.DataFrame, events: list[dict], cfg, views, info
     if untimed:
         out.append(warning(
             "no-frame-times",
-            f"track: {', '.join(untimed)} {'has' if len(untimed) == 1 else 'have'} no time stamps and no --fps was given: time_s is left empty, and the "
-            "smoothing and the loop's view-time-offset work in frames; give --fps for times in seconds", log,
+            f"track: {', '.join(untimed)} {'has' if len(untimed) == 1 else 'have'} no time stamps and no --fps "
+            "was given: time_s is left empty, and the smoothing and the loop's view-time-offset work in frames; "
+            "give --fps for times in seconds", log,
             views=untimed))
     lossy = {v: c for v in views if (c := lossy_compression(cfg.views[v])) is not None}
     if lossy:

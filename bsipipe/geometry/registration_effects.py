@@ -66,7 +66,10 @@ uncertainty exactly.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field, replace
+from itertools import combinations, permutations
+
 import numpy as np
 
 from ..distributions import chi2_isf, f_sf
@@ -316,15 +319,26 @@ def relabellings(free: list[str]) -> list[tuple[tuple[str, ...], ...]]:
     >>> relabellings(["a", "b", "c"])
     [(('b', 'c'),), (('a', 'b'),), (('a', 'b', 'c'),), (('a', 'c', 'b'),), (('a', 'c'),)]
     """
-    from itertools import combinations, permutations
+    return list(_relabellings(tuple(free)))
+
+
+@functools.lru_cache(maxsize=8)
+def _relabellings(free: tuple[str, ...]) -> tuple[tuple[tuple[str, ...], ...], ...]:
+    """:func:`relabellings`, kept: the effect asks for the same references' again and again."""
     n = len(free)
     if n <= MAX_PERMUTED:
-        return [_cycles(free, p) for p in permutations(range(n)) if any(i != j for i, j in enumerate(p))]
+        return tuple(_cycles(list(free), p) for p in permutations(range(n)) if any(i != j for i, j in enumerate(p)))
     out = []
     for k in range(2, _most_changed(n) + 1):
         for sub in combinations(free, k):
             out += [_cycles(list(sub), p) for p in permutations(range(k)) if all(i != j for i, j in enumerate(p))]
-    return out
+    return tuple(out)
+
+
+@functools.lru_cache(maxsize=64)
+def _n_relabellings(free: tuple[str, ...], size: int) -> int:
+    """How many of :func:`relabellings` of ``free`` change ``size`` labels or fewer (at least 1)."""
+    return max(sum(1 for r in _relabellings(free) if sum(len(c) for c in r) <= size), 1)
 
 
 def _free(data: RegistrationData, spec: RegistrationSpec) -> list[str]:
@@ -347,8 +361,9 @@ def _swap_candidate(data: RegistrationData, spec: RegistrationSpec) -> tuple[tup
         before = fit_registration(data, spec)
     except ValueError:
         return None
+    free = _free(data, spec)
     rss = []
-    for cyc in relabellings(_free(data, spec)):
+    for cyc in _relabellings(tuple(free)):
         try:
             after = fit_registration(data, replace(spec, swapped=spec.swapped + cyc))
         except ValueError:      # the relabelling leaves a degenerate configuration
@@ -358,9 +373,10 @@ def _swap_candidate(data: RegistrationData, spec: RegistrationSpec) -> tuple[tup
         return None
     rss.sort(key=lambda r: r[0])
     floor = rss[0][0] * SHORTLIST_RSS_FACTOR + np.finfo(float).tiny
+    held = {n: _heldout(data, spec, n) for n in free}        # the same for every relabelling
     best, best_key = None, None
     for r, cyc, after in [x for x in rss if x[0] <= floor][:SHORTLIST_MAX]:
-        ev = _with_check(_swap_evidence(data, spec, cyc), _check_evidence(data, before, after))
+        ev = _with_check(_swap_evidence(data, spec, cyc, held), _check_evidence(data, before, after))
         key = (ev["delta_bic"], -sum(len(c) for c in cyc), -r)
         if best_key is None or key > best_key:
             best, best_key = cyc, key
@@ -392,18 +408,22 @@ def _versus_moved(data: RegistrationData, spec: RegistrationSpec, after_spec: Re
             "p": f_sf(f, 3, dof)}
 
 
-def _swap_evidence(data: RegistrationData, spec: RegistrationSpec, cycles: tuple[tuple[str, ...], ...]) -> dict:
-    """Outside evidence for giving back the CT labels of ``cycles`` (``label-swap`` in the module docstring)."""
+def _swap_evidence(data: RegistrationData, spec: RegistrationSpec, cycles: tuple[tuple[str, ...], ...],
+                   before: dict | None = None) -> dict:
+    """Outside evidence for giving back the CT labels of ``cycles`` (``label-swap`` in the
+    module docstring).  ``before``: the held-out tests of the free references under
+    ``spec``, where the caller has them already."""
     n_used = len([n for n in data.names if n not in spec.moved])
+    free = tuple(_free(data, spec))
     # the choice among the relabellings that change as many labels as this one or fewer: an
     # exchange competes with the other exchanges only (as when pairs were all the effect
     # tried), a cycle of three with those and the other cycles of three, ...
-    size = sum(len(c) for c in cycles)
-    n_pairs = max(sum(1 for r in relabellings(_free(data, spec)) if sum(len(c) for c in r) <= size), 1)
+    n_pairs = _n_relabellings(free, sum(len(c) for c in cycles))
     # the worst held-out failure among the references free to be relabelled: the same for
     # every relabelling, so the evidence does not grow with the number of labels a
     # relabelling touches (a cycle of four is not favoured over the exchange it ties with)
-    before = {n: _heldout(data, spec, n) for n in _free(data, spec)}
+    if before is None:
+        before = {n: _heldout(data, spec, n) for n in free}
     after_spec = replace(spec, swapped=spec.swapped + tuple(cycles))
     after = {n: _heldout(data, after_spec, n) for n in data.names if n not in spec.moved}
     failing = sorted(n for n, h in after.items() if h is not None and h["p_bonferroni"] < HELDOUT_P)

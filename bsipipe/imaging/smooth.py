@@ -35,10 +35,11 @@ smoother then follows the data.  A frame where the marker was not found is bridg
 model but keeps no smoothed value (the table says where the marker was seen).
 
 Grids cover :math:`\log_{10} q \in [-6, 6]` (steps of 0.25; px^2/s^3 at 2 frames/s, the
-time rescaled to that rate for any other, so the same frames are smoothed alike at any rate) and :math:`s \in [0.5, 32]` (25
-steps of :math:`2^{1/4}`; a lossy codec's frames have lost the pixel noise the SNR is measured
-from, and their centres scatter up to about 20 times :math:`0.798/\mathrm{SNR}`), searched coarse to fine (every 4th q and 2nd s, then the full grid near each track's
-best).  Each pass is one Kalman recursion over time whose every step is a few vectorised
+time rescaled to that rate for any other, so the same frames are smoothed alike at any rate)
+and :math:`s \in [0.5, 32]` (25 steps of :math:`2^{1/4}`; a lossy codec's frames have lost
+the pixel noise the SNR is measured from, and their centres scatter up to about 20 times
+:math:`0.798/\mathrm{SNR}`), searched coarse to fine (every 4th q and 2nd s, then the full
+grid near each track's best).  Each pass is one Kalman recursion over time whose every step is a few vectorised
 NumPy operations on all tracks under all their grid models at once (and on all views that
 share a clock): tracks' measurements are shared by their models, not copied per model, so a
 2,000-frame stereo pair of 12 markers per view takes about half a second and little memory.

@@ -35,6 +35,7 @@ import csv
 import os
 import re
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -511,14 +512,27 @@ def _optional_column(rows, j, decimal) -> np.ndarray | None:
     return out if any_number else None
 
 
+class _GeometryRow(NamedTuple):
+    """A dimension the preamble states, converted once the decimal mark is known: ``row`` is
+    its results table row (0: the first, or a metadata row: the log's own; later rows are
+    other specimens'), ``label`` that row's specimen label where the table names it."""
+
+    what: str
+    value: str
+    unit: str
+    line: int
+    row: int = 0
+    label: str | None = None
+
+
 def _read_preamble(lines: list[str], delim):
     """Metadata rows, Results Table blocks and section titles before the names row.
 
     Returns ``(metadata, geometry_rows, raw_marker)``; ``geometry_rows`` are
-    ``(key, value, unit, line)`` to convert once the decimal mark is known.
+    :class:`_GeometryRow`.
     """
     metadata: dict[str, str] = {}
-    geometry_rows: list[tuple[str, str, str, int]] = []
+    geometry_rows: list[_GeometryRow] = []
     raw_marker = False
     table = None  # {'title', 'names', 'units', 'n'}
 
@@ -532,7 +546,7 @@ def _read_preamble(lines: list[str], delim):
             unit = key_unit or ""
         m = _GEOMETRY.match(normalise_name(base))
         if m and unit:
-            geometry_rows.append((m.group("what"), value, unit, line))
+            geometry_rows.append(_GeometryRow(m.group("what"), value, unit, line))
 
     for i, line in enumerate(lines):
         cells = _cells(line, delim)
@@ -575,7 +589,8 @@ def _read_preamble(lines: list[str], delim):
                     m = _GEOMETRY.match(normalise_name(name))
                     if m and unit:
                         # a later row is another specimen's: kept to tell whether it agrees
-                        geometry_rows.append((m.group("what"), cells[j], unit, i + 1, table["n"], row_label))
+                        geometry_rows.append(_GeometryRow(m.group("what"), cells[j], unit, i + 1, table["n"],
+                                                          row_label))
                 table["n"] += 1
             continue
         if 2 <= len(filled) <= 3 and cells[0] and not looks_numeric(cells[0]):
@@ -584,14 +599,13 @@ def _read_preamble(lines: list[str], delim):
     return metadata, geometry_rows, raw_marker
 
 
-def _rows_of(rows: list[tuple], label: str | None) -> list[tuple]:
+def _rows_of(rows: list[_GeometryRow], label: str | None) -> list[_GeometryRow]:
     """The geometry rows of the log's own specimen: where the log states its label (``Text
     Inputs : Specimen label``) and a results table labels its rows, that row (as the log's
     own) and no other table row; else every row as read."""
-    if label is None or not any(len(r) > 5 and r[5] == label for r in rows):
+    if label is None or not any(r.label == label for r in rows):
         return rows
-    return [r[:4] if len(r) > 5 and r[5] == label else r for r in rows if not (len(r) > 5 and r[5] is not None
-                                                                              and r[5] != label)]
+    return [r._replace(row=0) if r.label == label else r for r in rows if r.label in (None, label)]
 
 
 def _length_or_none(value, unit, decimal) -> float | None:
@@ -610,9 +624,9 @@ def _geometry(rows, decimal, path) -> tuple[dict[str, float], dict[str, tuple[st
     out: dict[str, float] = {}
     invalid: dict[str, tuple[str, int]] = {}
     ambiguous: set[str] = set()
-    for what, value, unit, line, *row in rows:
+    for what, value, unit, line, row, _ in rows:
         key = f"{what}_mm"
-        if row and row[0] > 0:
+        if row > 0:
             # a results table's later row: another specimen of the same test file.  Its
             # dimension differing from the first row's leaves this log's unknown
             v = _length_or_none(value, unit, decimal)
@@ -705,13 +719,13 @@ def _compression_signs(extension, load, load_name, extension_name, spikes) -> tu
     The record decides: the sample most loaded away from the start,
     ``k = argmax |F - F_start|`` (the ``spikes`` of :func:`load_spikes` left out), is where
     the machine compressed hardest, so the sign of ``F_k - F_start`` is the load's sign of
-    compression and that of ``x_k - x_0`` the extension's.  A name saying ``compressive`` (Bluehill's ``Compressive load``,
-    ``Compressive extension``) means +1; where the data are clear and say the opposite (a
-    template that names the channel compressive but writes Instron's negative values), the
-    data win and ``sign_from`` says so.  A name saying ``tensile`` (``Tensile load``) whose
-    data rise is a tension test: ``sign_from`` is :data:`_TENSION` (the reader refuses it).
-    A record with no load change keeps the name's sign, else Instron's convention
-    (compression negative).
+    compression and that of ``x_k - x_0`` the extension's.  A name saying ``compressive``
+    (Bluehill's ``Compressive load``, ``Compressive extension``) means +1; where the data are
+    clear and say the opposite (a template that names the channel compressive but writes
+    Instron's negative values), the data win and ``sign_from`` says so.  A name saying
+    ``tensile`` (``Tensile load``) whose data rise is a tension test: ``sign_from`` is
+    :data:`_TENSION` (the reader refuses it).  A record with no load change keeps the name's
+    sign, else Instron's convention (compression negative).
     """
     dev = _load_change(load, spikes)        # a glitch or an over-range code decides nothing
     k = int(np.argmax(np.abs(dev)))

@@ -120,7 +120,6 @@ class QLV:
         return out
 
 
-
 class PronyTerms:
     """The Prony recursions of one time grid by relaxation time, the ``size`` last used kept.
 
@@ -159,6 +158,7 @@ class PronyTerms:
         if len(self._terms) > self.size:
             self._terms.popitem(last=False)
         return term
+
 
 def qlv_response(time_s, elastic, g, tau_s) -> np.ndarray:
     r"""Quasi-linear viscoelastic response to an elastic history sampled on any time grid.
