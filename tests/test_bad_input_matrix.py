@@ -495,6 +495,9 @@ CASES: list[Case] = [
     # --- compare (bsipipe/io/fe_results.py)
     _c("compare-markers-ras", "compare", "markers_ct.csv in RAS, mesh in LPS (no marker inside the mesh)",
        lambda b, d: (_compare_args(b, markers=_markers_ras(b, d)), b.mesh, None), expect=1),
+    # a second, different row of one marker in one frame (hand-edited, or two files pasted)
+    _c("compare-markers-duplicate", "compare", "markers_ct.csv with a second, different row of a marker in a frame",
+       lambda b, d: (_compare_args(b, markers=(p := _marker_row_twice(b, d))), p, "line 3")),
     _c("compare-disp-text", "compare", "text in a displacement",
        lambda b, d: (_compare_args(b, disp=(p := _put(d / "u.csv", [
            ln if i != 3 else ln.split(",")[0] + ",x,0,0" for i, ln in enumerate(_lines(b.disp))]))), p, "line 4")),
@@ -517,6 +520,9 @@ CASES: list[Case] = [
     _c("export-fit-corrupt", "export-fe", "fit.json cut off",
        lambda b, d: (["export-fe", _config_edit(b.configs["export"], d / "e.yaml", lambda c: c["inputs"].update(
            fit=str(_put(d / "fit.json", _lines(b.fit / "fit.json")[:5]))))], d / "fit.json", None)),
+    _c("export-markers-duplicate", "export-fe", "markers_ct.csv with a second, different row of a marker in a frame",
+       lambda b, d: (["export-fe", _config_edit(b.configs["export"], d / "e.yaml", lambda c: c["inputs"].update(
+           markers_ct=str(_marker_row_twice(b, d))))], d / "markers_ct_twice.csv", "line 3")),
     _c("export-log-no-contact", "export-fe", "the indentation log never loads the tissue",
        lambda b, d: (["export-fe", _config_edit(b.configs["export"], d / "e.yaml", lambda c: c["inputs"].update(
            log=str(_flat_indentation_log(b, d))))], d / "log.csv", None), expect=1),
@@ -573,6 +579,15 @@ def _markers_ras(b: Base, d: Path) -> Path:
         df[c] = -df[c]
     df.to_csv(d / "markers_ct_ras.csv", index=False)
     return d / "markers_ct_ras.csv"
+
+
+def _marker_row_twice(b: Base, d: Path) -> Path:
+    """markers_ct.csv with its first row again as the second, 3 mm deeper."""
+    lines = _lines(b.register / "markers_ct.csv")
+    df = pd.read_csv(b.register / "markers_ct.csv", nrows=1)
+    df["z_mm"] += 3.0
+    df["dz_mm"] += 3.0
+    return _put(d / "markers_ct_twice.csv", [lines[0], lines[1], *df.to_csv(index=False).splitlines()[1:], *lines[2:]])
 
 
 def _flat_indentation_log(b: Base, d: Path) -> Path:

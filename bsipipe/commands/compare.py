@@ -50,16 +50,6 @@ class CompareConfig(StrictModel):
                                                            "displacement of the nearest element surface point")
 
 
-def read_markers_ct(path) -> pd.DataFrame:
-    """``markers_ct.csv`` as ``bsipipe register`` writes it (``frame,time_s,marker,x_mm,..,dz_mm[,role]``)."""
-    from ..fe.compare import MARKERS_CT_COLUMNS
-    from .register import read_table
-
-    df = read_table(path, MARKERS_CT_COLUMNS, expected="frame,time_s,marker,x_mm,y_mm,z_mm,dx_mm,dy_mm,dz_mm",
-                    optional_numeric=("time_s", "fe_time_s"))
-    return df.reset_index(drop=True)
-
-
 def run(fe_displacements: str | os.PathLike, mesh: str | os.PathLike, markers: str | os.PathLike, *,
         out: str | os.PathLike, frame: int | None = None, marker_names: Sequence[str] = (),
         fe_result: int | None = None, length_unit: str = "mm", outside_tol_mm: float = 0.0) -> dict:
@@ -75,7 +65,7 @@ def run(fe_displacements: str | os.PathLike, mesh: str | os.PathLike, markers: s
     from ..fe.compare import choose_fe_result, compare_displacements, markers_at_frame, peak_frame_info
     from ..io.abaqus import abaqus_header_values
     from ..io.fe_results import displacements_on_mesh, read_displacements, read_mesh
-    from .register import check_same_coordinate_system, coordinate_system_of
+    from .register import check_same_coordinate_system, coordinate_system_of, read_markers_ct
     from ..provenance import ResultSet, provenance
     from ..report.compare_figure import compare_figure
 

@@ -33,9 +33,6 @@ from ..errors import InputError, ProcessingError
 
 log = logging.getLogger("bsipipe.export_fe")
 
-MARKERS_CT_COLUMNS = ("frame", "marker", "x_mm", "y_mm", "z_mm", "dx_mm", "dy_mm", "dz_mm")
-
-
 def load_export_config(path):
     """The validated config with its paths made absolute (relative to the config's folder)."""
     from ..fe.config import ExportConfig
@@ -129,7 +126,7 @@ def read_mesh(path, names):
 
 def run(config: str | os.PathLike, *, out: str | os.PathLike) -> dict:
     """Build and write the hand-off; returns ``manifest.json``'s content."""
-    from ..commands.register import check_same_coordinate_system, coordinate_system_of, read_markers3d, read_table
+    from ..commands.register import check_same_coordinate_system, coordinate_system_of, read_markers3d, read_markers_ct
     from ..fe.export import HandoffError, build_handoff, render_files
     from ..io._fe_material import unit_system
     from ..provenance import ResultSet, provenance
@@ -140,11 +137,7 @@ def run(config: str | os.PathLike, *, out: str | os.PathLike) -> dict:
     transform, reg = read_registration(inp.registration)
     if not Path(inp.markers_ct).exists():
         raise InputError("file not found", path=inp.markers_ct, key="inputs.markers_ct")
-    markers_ct = read_table(inp.markers_ct, MARKERS_CT_COLUMNS,
-                            expected="frame,time_s,marker,x_mm,y_mm,z_mm,dx_mm,dy_mm,dz_mm",
-                            optional_numeric=("time_s",))
-    if "time_s" not in markers_ct.columns:
-        markers_ct["time_s"] = np.nan
+    markers_ct = read_markers_ct(inp.markers_ct)
     check_same_coordinate_system(coordinate_system_of(markers_ct, inp.markers_ct), inp.markers_ct,
                                  reg.get("ct_coordinate_system"), inp.registration)
     log_record, machine_log = read_log(inp.log)

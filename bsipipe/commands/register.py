@@ -137,12 +137,38 @@ def read_markers3d(path) -> pd.DataFrame:
                     optional_numeric=("time_s",))
     if "time_s" not in df.columns:
         df["time_s"] = np.nan
-    dup = df.duplicated(["frame", "marker"], keep="first")
-    if dup.any():
-        i = int(np.flatnonzero(dup.to_numpy())[0])
-        raise InputError(f"marker {df['marker'].iloc[i]!r} appears twice in frame {df['frame'].iloc[i]}",
-                         path=path, line=int(df.index[i]) + 2)
+    _once_per_frame(df, path)
     return df.reset_index(drop=True)
+
+
+def read_markers_ct(path) -> pd.DataFrame:
+    """``markers_ct.csv`` as :func:`run` writes it (``frame,time_s,marker,x_mm,..,dz_mm[,role]``),
+    for ``compare`` and ``export-fe``: one row per marker and frame (a second row of a marker
+    in a frame, the same or not, is an error naming both lines); ``time_s`` NaN when the
+    file has none."""
+    from ..fe.compare import MARKERS_CT_COLUMNS
+
+    df = read_table(path, MARKERS_CT_COLUMNS, expected="frame,time_s,marker,x_mm,y_mm,z_mm,dx_mm,dy_mm,dz_mm",
+                    optional_numeric=("time_s", "fe_time_s"))
+    if "time_s" not in df.columns:
+        df["time_s"] = np.nan
+    _once_per_frame(df, path)
+    return df.reset_index(drop=True)
+
+
+def _once_per_frame(df: pd.DataFrame, path) -> None:
+    """Error (naming the line and the line of the first row) where a marker has two rows in
+    one frame; ``df`` as :func:`read_table` returns it (index: data row number)."""
+    dup = df.duplicated(["frame", "marker"], keep=False)
+    if dup.any():
+        rows = df[dup]
+        first = rows.groupby(["frame", "marker"], sort=False).head(1)
+        again = rows.drop(first.index)
+        k = again.index[0]
+        f = first[(first["frame"] == again.at[k, "frame"]) & (first["marker"] == again.at[k, "marker"])].index[0]
+        raise InputError(f"marker {again.at[k, 'marker']!r} appears twice in frame {again.at[k, 'frame']} "
+                         f"(also line {int(f) + 2}): one row per marker and frame",
+                         path=path, line=int(k) + 2)
 
 
 def _found(df: pd.DataFrame) -> pd.Series:
