@@ -346,3 +346,51 @@ def test_swap_with_references_only_is_not_taken_for_a_mirrored_file(tmp_path):
     assert res["references"]["swapped"] in ([["R1", "R3"]], [["R2", "R4"]])
     assert res["fre_rms_mm"] < 5 * np.sqrt(3) * NOISE_MM
     assert {"label-swap", "ambiguous-reference-error"} <= set(_codes(res))
+
+
+def test_swap_along_a_side_with_references_only_is_given_back(tmp_path):
+    """Four references and no implanted marker, R1 <-> R2 exchanged along a side of the square:
+    FRE 14 mm against 0.009 mm of tracking noise.  Twelve numbers show no pattern to the
+    residual's structure tests, and with 3 degrees of freedom for the noise the held-out tests
+    have no power: the loop took the residual for noise and kept the wrong transform (exit 0,
+    the rotation 36 degrees off).  A FRE above what tracking noise and a CT voxel can give
+    (the noise ceiling) is not noise: the candidates are weighed on the fit, and giving the
+    labels back brings the FRE to the noise."""
+    def edit(ct):
+        for n in NAMES[4:]:
+            del ct[n]
+        _swap("R1", "R2")(ct)
+    _trial(tmp_path, ct_edit=edit)
+    r, res = _register(tmp_path)
+    assert r.exit_code == 0, r.output
+    assert [s["effect"] for s in res["loop"]["steps"]] == ["label-swap"]
+    assert res["references"]["swapped"] == [["R1", "R2"]]
+    assert res["fre_rms_mm"] < 5 * np.sqrt(3) * NOISE_MM
+    assert np.abs(np.array(res["R"]) - T_TRUE.R).max() < 1e-3
+    ceiling = res["loop"]["residual_structure"]["noise_ceiling_mm"]
+    assert res["loop"]["baseline"]["rmse_mm"] > ceiling > 100 * NOISE_MM
+    # the moved-reference fit is far worse (it cannot free both): no ambiguity to warn of
+    assert "label-swap" in _codes(res) and "ambiguous-reference-error" not in _codes(res)
+
+
+def test_a_reference_hidden_at_the_start_moves_the_registration_frame_with_a_warning(tmp_path):
+    """R2 is not found before frame 12, by when the tissue has moved 0.57 mm (the ramp starts
+    at frame 5): the registration frame is 12 and markers_ct.csv's displacements are from it
+    (the contract), which a warning says, naming how far each marker had moved and the
+    --frame that registers at the start.  The implanted-marker check compares the CT with the
+    markers at rest (their first frame), not at frame 12: before, it took the tissue's motion
+    for a wrong transform (a ct-check warning, "references swapped or moved")."""
+    _trial(tmp_path)
+    m3 = pd.read_csv(tmp_path / "markers3d.csv")
+    m3.loc[(m3["marker"] == "R2") & (m3["frame"] < 12), ["x_mm", "y_mm", "z_mm"]] = np.nan
+    m3.to_csv(tmp_path / "markers3d.csv", index=False, float_format="%.17g")
+    r, res = _register(tmp_path)
+    assert r.exit_code == 0, r.output
+    assert res["frame"] == 12
+    assert "ct-check" not in _codes(res) and res["ct_check_rms_mm"] < 0.05
+    late = next(w for w in res["warnings"] if w["code"] == "late-registration-frame")
+    moved = 0.7 * np.linalg.norm([0.1, -0.1, -0.8])
+    assert set(late["moved_mm"]) == {"M1", "M2", "M3", "M4", "M5"}
+    assert all(abs(d - moved) < 0.05 for d in late["moved_mm"].values())
+    assert "--frame 0" in late["message"] and "(R1, R3, R4)" in late["message"]
+    # the clean trial registers at frame 0: no such warning (test_clean_trial_has_an_empty_warnings_list)

@@ -37,6 +37,11 @@ Warnings (``registration.json`` ``warnings``, also logged; codes):
 ``ambiguous-reference-error``
     The loop kept ``label-swap`` (or ``moving-reference``) while the other explains the
     references about as well (within the loop's tie margin).
+``late-registration-frame``
+    The registration frame is not the table's first and markers other than the references
+    had moved by then (more than :data:`NOISE_FACTOR` times the tracking noise) from where
+    they were first found: markers_ct.csv's displacements, from the registration frame, miss
+    that motion (``--frame`` of the first frame, where three references are found there).
 ``head-motion``, ``tre-not-estimated``
     The references move together over the trial; no degrees of freedom left for the FLE.
 """
@@ -44,6 +49,7 @@ Warnings (``registration.json`` ``warnings``, also logged; codes):
 from __future__ import annotations
 
 import logging
+import math
 import os
 from typing import Sequence
 
@@ -65,6 +71,11 @@ NOISE_FACTOR = 10.0
 #: which bounds how well a marker is localised in CT, and a brain shift between CT and trial of
 #: this size is common.
 CHECK_FLOOR_MM = 0.5
+#: The largest 3-D RMS error of a reference's CT localisation (mm): about a CT voxel.  With the
+#: tracking noise it bounds the FRE noise can give: :data:`NOISE_FACTOR` times their root sum
+#: of squares is the loop's noise ceiling (per coordinate, over sqrt 3); a FRE above it is not
+#: noise, however few references there are to show a pattern (four: twelve numbers).
+CT_FLE_MAX_MM = 0.5
 #: Lateral spread of the references over their length (``line_ratio`` of
 #: :func:`~bsipipe.geometry.registration.point_configuration`) below which they are nearly collinear.
 LINE_RATIO_MIN = 0.1
@@ -266,15 +277,49 @@ def check_same_coordinate_system(a: str | None, path_a, b: str | None, path_b) -
                          "with the CT markups file of the frame the FE model is in", path=path_a)
 
 
-def _target_positions(tracks: pd.DataFrame, frame: int) -> dict[str, np.ndarray]:
-    """Each marker's X-ray position in ``frame``, else its mean over the frames where it is found."""
-    ok = tracks[_found(tracks)]
-    out = {}
-    for m, g in ok.groupby("marker", sort=False):
-        at = g[g["frame"] == frame]
-        src = at if len(at) else g
-        out[str(m)] = src[["x_mm", "y_mm", "z_mm"]].to_numpy(float).mean(axis=0)
-    return out
+def _rest_positions(tracks: pd.DataFrame) -> tuple[dict[str, np.ndarray], dict[str, int]]:
+    """Each marker's X-ray position in the first frame it is found in (the trial's start: at
+    rest, as the CT saw it, whatever frame the references register in), and that frame."""
+    ok = tracks[_found(tracks)].sort_values("frame", kind="stable")
+    first = ok.groupby("marker", sort=False).head(1)
+    pos = {str(m): np.array([x, y, z], float) for m, x, y, z in first[["marker", "x_mm", "y_mm", "z_mm"]]
+           .itertuples(index=False)}
+    return pos, {str(m): int(f) for m, f in first[["marker", "frame"]].itertuples(index=False)}
+
+
+def _late_frame_warning(tracks: pd.DataFrame, F: int, rest: dict, rest_frame: dict, references: Sequence[str],
+                        limit_mm: float, in_ct: Sequence[str], given: bool = False) -> dict | None:
+    """``late-registration-frame`` when the registration frame ``F`` is not the table's first
+    and markers other than the references had moved by then more than ``limit_mm``: the
+    displacements in markers_ct.csv are from ``F``, so they miss that motion (``given``: F
+    came from ``--frame``)."""
+    from ..quality import warning
+
+    f0 = int(tracks["frame"].min())
+    if F == f0 or not np.isfinite(limit_mm):
+        return None
+    at = tracks[(tracks["frame"] == F) & _found(tracks)].set_index("marker")[["x_mm", "y_mm", "z_mm"]]
+    moved = {}
+    for m, x in at.iterrows():
+        if m in references or m not in rest or rest_frame[m] >= F:
+            continue
+        d = float(np.linalg.norm(x.to_numpy(float) - rest[m]))
+        if d > limit_mm:
+            moved[str(m)] = d
+    if not moved:
+        return None
+    here = sorted(set(tracks.loc[(tracks["frame"] == f0) & _found(tracks), "marker"]) & set(in_ct))
+    hint = (f"; --frame {f0} registers there with the references found in it ({', '.join(here)})"
+            if len(here) >= 3 else "")
+    worst = sorted(moved.items(), key=lambda kv: -kv[1])
+    return warning("late-registration-frame",
+                   f"register: displacements in markers_ct.csv are from the registration frame {F} "
+                   + ("(--frame)" if given else "(the first with every reference found)")
+                   + f", not from frame {f0}: by frame {F} "
+                   + ", ".join(f"{m} had moved {d:.3g} mm" for m, d in worst[:5])
+                   + (f" and {len(worst) - 5} more" if len(worst) > 5 else "")
+                   + f" (more than {limit_mm:.2g} mm) from where each was first found{hint}", log,
+                   frame=int(F), first_frame=f0, moved_mm=moved, limit_mm=limit_mm)
 
 
 def _check_handedness(xray: dict, ct: dict, *, scale: bool, ct_path, system, references: Sequence[str] = ()) -> None:
@@ -412,18 +457,30 @@ def _reference_effect_warnings(report, *, has_check: bool) -> list[dict]:
         runner = step.evidence.get("runner_up") or {}
         if rival is None or runner.get("effect") != rival:
             continue
-        mine = (step.evidence.get("outside") or {}).get("delta_bic", 0.0)
-        other = next(((c.get("outside") or {}).get("delta_bic", 0.0) for c in report.tried[i]
-                      if c["effect"] == rival), 0.0)
+        if step.evidence.get("criterion") == "outside":
+            what = "outside evidence"
+            mine = (step.evidence.get("outside") or {}).get("delta_bic", 0.0)
+            other = next(((c.get("outside") or {}).get("delta_bic", 0.0) for c in report.tried[i]
+                          if c["effect"] == rival), 0.0)
+        else:       # kept on the fit (a FRE above what noise can give): the runner-up's fit
+            what = "delta BIC of the fit"
+            mine, other = step.evidence["delta_bic"], runner.get("delta_bic", 0.0)
         if abs(mine - other) <= report.rule.tie_delta_bic:
             out.append(warning(
                 "ambiguous-reference-error",
-                f"register: {step.effect.name} and {rival} explain the references about equally (outside evidence "
+                f"register: {step.effect.name} and {rival} explain the references about equally ({what} "
                 f"{mine:.1f} vs {other:.1f}); the loop kept {step.effect.name}"
                 + ("" if has_check else "; no marker localised in CT besides the references could tell them "
                                         "apart: check the CT labels and the references by eye"), log,
                 kept=step.effect.name, runner_up=rival))
     return out
+
+
+def _noise_ceiling(noise: dict) -> float:
+    """The loop's noise ceiling (mm, per coordinate) from the references' tracking noise
+    (:func:`~bsipipe.geometry.registration.tracking_noise`; none measured: CT alone)."""
+    track_3d = math.sqrt(3.0) * noise["sigma_mm"] if math.isfinite(noise["sigma_mm"]) else 0.0
+    return NOISE_FACTOR * math.hypot(track_3d, CT_FLE_MAX_MM) / math.sqrt(3.0)
 
 
 def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str], *,
@@ -500,10 +557,10 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
             f"{c['lateral_mm']:.3g} mm rad), and so is every point away from it", log,
             line_ratio=c["line_ratio"], lateral_mm=c["lateral_mm"], spread_mm=c["spread_mm"], file=worst[1]))
     _check_length_units(pos[fi], y_refs, ct_path=ct, xray_path=xray)
-    _check_handedness(_target_positions(tracks, F), ct_pos, scale=cfg.scale, ct_path=ct,
+    targets, target_frames = _rest_positions(tracks)
+    _check_handedness(targets, ct_pos, scale=cfg.scale, ct_path=ct,
                       system=markups.coordinate_system, references=found)
 
-    targets = _target_positions(tracks, F)
     t_names = list(targets)
     # Markers localised in CT that are not references: an independent check of any transform
     c_names = [n for n in t_names if n in ct_pos and n not in found]
@@ -512,8 +569,9 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
                             check_x_mm=np.array([targets[n] for n in c_names]).reshape(-1, 3),
                             check_y_mm=np.array([ct_pos[n] for n in c_names]).reshape(-1, 3))
     spec0 = RegistrationSpec(scale=cfg.scale)
+    ceiling = _noise_ceiling(reg.tracking_noise(pos))
     try:
-        report = close_registration_loop(data, spec0, loop=cfg.loop)
+        report = close_registration_loop(data, spec0, loop=cfg.loop, noise_ceiling=ceiling)
     except ValueError as e:
         raise ProcessingError(f"registration failed: {e}", path=xray, frame=F) from None
     fit = report.final.fit
@@ -527,6 +585,10 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
     noise_3d = float(np.sqrt(3.0) * noise["sigma_mm"])
     swaps = [{"references": list(c), "note": _relabel_note(c)} for c in spec.swapped]
     warnings += _reference_effect_warnings(report, has_check=bool(c_names))
+    late = _late_frame_warning(tracks, F, targets, target_frames, found, NOISE_FACTOR * noise_3d, in_ct,
+                               given=cfg.frame is not None)
+    if late is not None:
+        warnings.append(late)
     if np.isfinite(noise_3d) and fre_rms > NOISE_FACTOR * noise_3d:
         why = ("with three references the moving-reference test cannot run, so a moved or mislabelled reference "
                "cannot be told from the others" if len(used) <= MIN_REFERENCES
@@ -607,7 +669,7 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
         "tre_mm": {n: float(e) for n, e in zip(t_names, tre)},
         "tre_method": ("first-order propagation of the estimated FLE through the fit (equals Fitzpatrick, West & "
                        "Maurer 1998 for a rigid fit), in the CT frame at each marker's X-ray position in the "
-                       "registration frame (else its mean position)"),
+                       "first frame it is found in"),
         "tre_perturbation_mm": None if pert is None else {n: float(e) for n, e in zip(t_names, pert["rms_mm"])},
         "tre_perturbation_p95_mm": None if pert is None else {n: float(e) for n, e in zip(t_names, pert["p95_mm"])},
         "tre_perturbation": None if pert is None else {"n_draws": pert["n_draws"], "seed": pert["seed"],
@@ -615,7 +677,8 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
                                                                   "fitted CT references"},
         "ct_check_mm": check,
         "ct_check_rms_mm": float(np.sqrt(np.mean(np.square(list(check.values()))))) if check else None,
-        "ct_check_note": "markers localised in CT that are not references: |T(x) - x_ct| (their own "
+        "ct_check_note": "markers localised in CT that are not references: |T(x) - x_ct|, x their X-ray "
+                         "position in the first frame each is found in (at rest, as the CT saw them; their own "
                          "localisation errors included)",
         "ct_position_undefined": no_ct,
         "reference_checks": reference_checks(data, spec),

@@ -50,7 +50,7 @@ positions in the registration frame F; its residual is the 3N coordinates of
 
 (c) Markers localised in CT that are not references (implanted markers: the same check
 ``registration.json`` reports as ``ct_check_mm``) were not fitted, so they judge any
-transform from the outside: with :math:`m` of them at their X-ray positions in frame F,
+transform from the outside: with :math:`m` of them at their X-ray positions at rest,
 :math:`3m \ln(\mathrm{RSS}_{before}/\mathrm{RSS}_{after})` (Gaussian, variance unknown, no
 parameter fitted) is added to the outside evidence of ``moving-reference`` and
 ``label-swap``; it can be negative.  This is what tells a label swap of two references at
@@ -111,8 +111,9 @@ class RegistrationData:
     ``names`` (N,), ``x_mm`` (N, 3) X-ray positions in frame F, ``y_mm`` (N, 3) CT positions
     (as the CT file labels them), ``tracks_mm`` (n_frames, N, 3) X-ray positions in every frame
     (NaN where not found), ``time_s`` (n_frames,); ``check_x_mm``, ``check_y_mm`` (m, 3):
-    markers localised in CT that are not references (X-ray position in frame F, CT position),
-    the outside check of a transform.
+    markers localised in CT that are not references (X-ray position at rest: ``bsipipe
+    register`` takes the first frame each is found in; CT position), the outside check of a
+    transform.
     """
 
     names: list[str]
@@ -510,16 +511,17 @@ def registration_effects(data: RegistrationData) -> list[Effect]:
     ]
 
 
-def close_registration_loop(data: RegistrationData, spec0: RegistrationSpec, *, loop: bool = True) -> LoopReport:
+def close_registration_loop(data: RegistrationData, spec0: RegistrationSpec, *, loop: bool = True,
+                            noise_ceiling: float | None = None) -> LoopReport:
     """Fit ``spec0`` and, with ``loop``, try ``scale``, ``label-swap`` and ``moving-reference``
-    (bsipipe.loop's rule)."""
+    (bsipipe.loop's rule; ``noise_ceiling``, mm per coordinate: :func:`bsipipe.loop.run_loop`'s)."""
     cands = registration_effects(data) if loop else []
 
     def fit(spec):
         return fit_registration(data, spec)
 
     report = run_loop(fit, spec0, cands, covariates=registration_covariates(data),
-                      describe=lambda s: s.describe(), unit="mm")
+                      describe=lambda s: s.describe(), unit="mm", noise_ceiling=noise_ceiling)
     if not loop:
         report.stopped_because = "--no-loop: the declared model only"
     return report

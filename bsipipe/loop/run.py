@@ -162,6 +162,7 @@ class LoopReport:
     tried: list[list[dict]] = field(default_factory=list)
     stopped_because: str = ""
     noise_rms: float | None = None
+    noise_ceiling: float | None = None
 
     @property
     def final(self) -> LoopState:
@@ -179,6 +180,11 @@ class LoopReport:
         rs = dict(self.final.structure)
         if self.noise_rms:
             rs.update({f"noise_rms_{u}": self.noise_rms, "rmse_over_noise": self.final.rmse / self.noise_rms})
+        if self.noise_ceiling:
+            rs[f"noise_ceiling_{u}"] = self.noise_ceiling
+            if self.final.rmse > self.noise_ceiling:
+                # the structure tests saw no pattern, but noise cannot be this large
+                rs.update(noise=False, above_noise_ceiling=True)
         return {
             "baseline": base,
             "steps": [s.to_dict(u) for s in self.steps],
@@ -333,6 +339,7 @@ def run_loop(fit: Callable[[Any], Any], spec0, candidates: Sequence[Effect], *,
              unit: str = "n",
              rule: SelectionRule = SelectionRule(),
              noise_rms: float | None = None,
+             noise_ceiling: float | None = None,
              max_steps: int = 10) -> LoopReport:
     """Close the loop on one stage's model (the rule is in the module docstring).
 
@@ -362,6 +369,12 @@ def run_loop(fit: Callable[[Any], Any], spec0, candidates: Sequence[Effect], *,
         sample-to-sample differences), reported with the loop; a residual whose RMSE is at or
         below it is noise (only effects with outside evidence are tried); above it, only the
         residual's structure tests decide.
+    noise_ceiling : float, optional
+        The largest RMSE the measurement noise can plausibly give (from known bounds on each
+        source of error); a residual whose RMSE is above it is not noise, whatever its
+        structure tests say (a dozen numbers show no pattern: four references at a
+        registration frame), so the candidates are weighed on the fit (delta BIC and the
+        RMSE gain) as well as on outside evidence.
 
     Returns
     -------
@@ -369,7 +382,7 @@ def run_loop(fit: Callable[[Any], Any], spec0, candidates: Sequence[Effect], *,
     """
     fitter = _Fitter(fit, heldout, covariates, groups, describe, rule.alpha)
     state = fitter.state(spec0)
-    report = LoopReport(unit=unit, rule=rule, baseline=state, noise_rms=noise_rms)
+    report = LoopReport(unit=unit, rule=rule, baseline=state, noise_rms=noise_rms, noise_ceiling=noise_ceiling)
     for _ in range(max_steps):
         # Below the measured noise level there is nothing left to explain.  Just above it the
         # residual is noise only if its pattern says so too: a structured residual (a second
@@ -377,7 +390,8 @@ def run_loop(fit: Callable[[Any], Any], spec0, candidates: Sequence[Effect], *,
         # the parameters far outside their intervals; the candidates still need delta BIC,
         # the RMSE gain and the held-out check.
         at_floor = noise_rms is not None and state.rmse <= noise_rms
-        noise = state.structure["noise"] or at_floor
+        above_ceiling = noise_ceiling is not None and state.rmse > noise_ceiling
+        noise = (state.structure["noise"] or at_floor) and not above_ceiling
         round_: list[dict] = []
         passing: list[tuple[tuple, Effect, LoopState, dict]] = []
         for eff in candidates:
@@ -423,7 +437,8 @@ def run_loop(fit: Callable[[Any], Any], spec0, candidates: Sequence[Effect], *,
                     entry["runner_up"] = {"effect": nxt[1].name, "delta_bic": nxt[3]["delta_bic"]}
         report.tried.append(round_)
         if kept is None:
-            floor = " (its RMSE at or below the measured noise level)" if at_floor else ""
+            floor = (" (its RMSE at or below the measured noise level)" if at_floor
+                     else f" (its RMSE above the {noise_ceiling:.3g} noise can give)" if above_ceiling else "")
             report.stopped_because = (f"the residual is noise{floor} and no effect has outside evidence" if noise
                                       else f"the residual has structure no candidate explains with strong evidence{floor}"
                                       if round_ else "no candidate can augment the model further")
