@@ -390,6 +390,30 @@ def test_a_glitch_or_an_over_range_sample_is_left_out_and_named(tmp_path, value)
     assert not (tmp_path / "out2").exists()
 
 
+@pytest.mark.parametrize("channel, run, offset", [("extension_mm", 1, 0.3), ("extension_mm", 1, -0.3),
+                                                  ("extension_mm", 1, 5.0), ("load_n", 2, 0.5),
+                                                  ("extension_mm", 3, 0.2)])
+def test_a_glitch_of_one_to_three_samples_in_either_channel_is_left_out(tmp_path, channel, run, offset):
+    """An encoder's miscount of one sample (0.3 mm, either way, or 5 mm) had split the record
+    into two "loading ramps" and only the first was fitted: exit 0, no warning, alpha -3.21
+    or -5.14, or with the loop a 30.7 mm/N machine compliance and alpha +2.5; a burst of two
+    load samples (0.5 N) was fitted as force: mu 630 Pa, alpha -5.27.  Runs of one to three
+    samples that jump away and back are left out of the fit, by line, in either channel."""
+    frame, _ = synth_compression_log(seed=34)                  # mu 720 Pa, alpha -4.7
+    k = int(0.6 * len(frame))
+    frame.loc[k:k + run - 1, channel] += offset
+    path = write_bluehill2(frame, tmp_path / "glitch.csv", label="S7",
+                           geometry={"diameter_mm": 18.0, "height_mm": 12.0})
+    r = _invoke("fit-ogden", path, "--bootstrap", "0", "-o", tmp_path / "out")
+    assert r.exit_code == 0, r.output
+    d = json.loads((tmp_path / "out" / "fit.json").read_text())
+    assert abs(d["params"]["mu_pa"] / 720.0 - 1) < 0.03 and abs(d["params"]["alpha"] + 4.7) < 0.1
+    assert d["inputs"][0]["fitted_part"] == "whole record" and d["loop"]["steps"] == []
+    code = "extension-spikes" if channel == "extension_mm" else "load-spikes"
+    spikes = [w for w in d["warnings"] if w["code"] == code]
+    assert len(spikes) == 1 and len(spikes[0]["lines"]) == run
+
+
 @pytest.mark.parametrize("rows", ["1.0,0\n0.9,0\n0.8,0\n", "1.0,0\n1.0,5\n1.0,-3\n"])
 def test_a_table_with_nothing_loaded_is_exit_2(tmp_path, rows):
     """All-zero stress, or every stretch 1, had ended in exit 1 with scipy's 'gtol termination

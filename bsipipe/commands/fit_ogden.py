@@ -207,17 +207,23 @@ def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig):
         disp, force = ml.compression()
         time_s = ml.time_s
         rows = np.arange(len(ml))                # the record's sample of each one kept
-        spikes = ml.spikes
         record: dict = {"n_record": int(len(ml))}
-        if spikes.any():
-            lines = [ml.line_of(k) for k in np.flatnonzero(spikes)]
-            if spikes.sum() > max(MAX_SPIKES, 0.01 * len(ml)):
-                raise InputError(f"{int(spikes.sum())} load samples are over-range codes (|F| >= 1e30) or "
-                                 f"single-sample spikes (lines {listed(lines, 8)}): the load channel did not "
-                                 "record a force there; check the export", path=p)
-            keep = ~spikes
+        for key, spikes, what, values, unit in (
+                ("spikes_left_out", ml.spikes, "load samples are over-range codes (|F| >= 1e30) or glitches",
+                 ml.load_n, "load_n"),
+                ("extension_spikes_left_out", ml.extension_spikes, "extension samples are glitches",
+                 ml.extension_mm, "extension_mm")):
+            if spikes.any():
+                lines = [ml.line_of(k) for k in np.flatnonzero(spikes)]
+                if spikes.sum() > max(MAX_SPIKES, 0.01 * len(ml)):
+                    raise InputError(f"{int(spikes.sum())} {what} (runs of 1 to 3 samples that jump away and "
+                                     f"back; lines {listed(lines, 8)}): the channel did not record the test "
+                                     "there; check the export", path=p)
+                record[key] = {"lines": lines, unit: [float(v) for v in values[spikes]]}
+        bad = ml.spikes | ml.extension_spikes
+        if bad.any():
+            keep = ~bad
             rows, time_s, disp, force = rows[keep], time_s[keep], disp[keep], force[keep]
-            record["spikes_left_out"] = {"lines": lines, "load_n": [float(v) for v in ml.load_n[spikes]]}
         ramps = loading_ramps(disp)
         record["loading_ramps"] = len(ramps)
         if len(ramps) > 1:
@@ -432,19 +438,24 @@ def _compliance_implausible(c_mm_per_n: float, data) -> list[dict]:
 
 
 def _spikes_left_out(input_info: list[dict]) -> list[dict]:
-    """``load-spikes`` warnings: the samples of a log left out of the fit as over-range codes or
-    single-sample spikes (:func:`bsipipe.io.machine_log.load_spikes`), by line."""
+    """``load-spikes`` and ``extension-spikes`` warnings: the samples of a log left out of the
+    fit as over-range codes or glitches (:func:`bsipipe.io.machine_log.load_spikes`,
+    :func:`~bsipipe.io.machine_log.channel_spikes`), by line."""
     from ..quality import warning
     out = []
     for info in input_info:
-        sp = info.get("spikes_left_out")
-        if sp:
-            out.append(warning(
-                "load-spikes",
-                f"fit-ogden: {Path(info['path']).name}: {len(sp['lines'])} load sample(s) left out of the fit, "
-                f"over-range codes or single-sample spikes (line(s) {listed(sp['lines'], 8)}: "
-                + ", ".join(f"{v:.4g} N" for v in sp["load_n"][:8]) + ")", log, path=str(info["path"]),
-                lines=sp["lines"]))
+        for key, code, what, unit, u in (("spikes_left_out", "load-spikes", "load", "load_n", "N"),
+                                         ("extension_spikes_left_out", "extension-spikes", "extension",
+                                          "extension_mm", "mm")):
+            sp = info.get(key)
+            if sp:
+                kind = "over-range codes or glitches" if code == "load-spikes" else "glitches"
+                out.append(warning(
+                    code,
+                    f"fit-ogden: {Path(info['path']).name}: {len(sp['lines'])} {what} sample(s) left out of the "
+                    f"fit, {kind} (runs of 1 to 3 samples that jump away and back; line(s) "
+                    f"{listed(sp['lines'], 8)}: " + ", ".join(f"{v:.4g} {u}" for v in sp[unit][:8]) + ")",
+                    log, path=str(info["path"]), lines=sp["lines"]))
     return out
 
 

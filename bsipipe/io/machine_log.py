@@ -115,6 +115,9 @@ class MachineLog:
     spikes : ndarray of bool, shape (n,)
         Load samples that are no force (:func:`load_spikes`): they decided no sign, and a
         fit leaves them out.
+    extension_spikes : ndarray of bool, shape (n,)
+        Extension samples that are glitches (:func:`channel_spikes`: an encoder's miscount
+        of one to three samples); a fit leaves them out.
     """
 
     path: str
@@ -133,12 +136,15 @@ class MachineLog:
     dialect: dict[str, str] = field(default_factory=dict)
     geometry_invalid: dict[str, tuple[str, int]] = field(default_factory=dict)
     spikes: np.ndarray | None = None
+    extension_spikes: np.ndarray | None = None
 
     def __post_init__(self):
         if self.displacement_sign == 0:
             object.__setattr__(self, "displacement_sign", self.compression_sign)
         if self.spikes is None:
             object.__setattr__(self, "spikes", load_spikes(self.load_n))
+        if self.extension_spikes is None:
+            object.__setattr__(self, "extension_spikes", channel_spikes(self.extension_mm))
 
     def __len__(self) -> int:
         return int(self.time_s.size)
@@ -667,19 +673,20 @@ OVERRANGE_N = 1e30
 SPIKE_RATIO = 10.0
 
 
+#: The longest burst (consecutive samples away from the signal and back) taken for a glitch.
+MAX_BURST = 3
+
+
 def load_spikes(load) -> np.ndarray:
     """Samples of a load channel that are no force: over-range codes (``|F| >= 1e30``) and
-    single-sample spikes (a glitch, a dropped bit), as a bool mask.
-
-    A sample is a spike when it jumps away from its predecessor and back to its successor by
-    more than :data:`SPIKE_RATIO` times the steps around it (``|F[i-1] - F[i-2]|``,
-    ``|F[i+2] - F[i+1]|``) and the channel's resolution (the median nonzero step): a ramp's
-    turning point moves in steps like its neighbours', a glitch jumps and comes back.
+    glitches (:func:`channel_spikes`), as a bool mask.
 
     >>> bool(load_spikes([0.0, 0.1, 0.2, 0.3, 5.0, 0.5, 0.6, 0.7, 0.8])[4])
     True
     >>> int(load_spikes([0.0, 0.1, 0.2, 0.3, 0.4, 0.3, 0.2, 0.1, 0.0]).sum())     # a turning point
     0
+    >>> load_spikes([0.0, 0.1, 0.2, 0.3, 9.9e37, 0.5, 0.6]).nonzero()[0].tolist()
+    [4]
     """
     f = np.asarray(load, dtype=float)
     bad = ~np.isfinite(f) | (np.abs(f) >= OVERRANGE_N)
@@ -691,14 +698,53 @@ def load_spikes(load) -> np.ndarray:
         if good.size == 0:
             return bad
         g[bad] = np.interp(np.flatnonzero(bad), good, f[good])
+    return bad | channel_spikes(g)
+
+
+def channel_spikes(values) -> np.ndarray:
+    """Glitches of a channel (a dropped bit, an encoder's miscount, a burst of interference),
+    as a bool mask: runs of 1 to :data:`MAX_BURST` samples that jump away from the signal and
+    back.
+
+    A run of ``w`` samples ``i .. i+w-1`` is a glitch when the jumps into it and out of it are
+    both more than :data:`SPIKE_RATIO` times the steps around it (``|v[i-1] - v[i-2]|``,
+    ``|v[i+w+1] - v[i+w]|``) and the channel's resolution (the median nonzero step); a run of
+    two or three must also jump out the way it jumped in, back to within ``2 (w + 1)`` such
+    steps of where it left (a ramp's turning point moves in steps like its neighbours'; a
+    step change stays).
+
+    >>> channel_spikes([0.0, 0.1, 0.2, 0.3, 5.0, 0.5, 0.6, 0.7, 0.8]).nonzero()[0].tolist()
+    [4]
+    >>> channel_spikes([0.0, 0.1, 0.2, 0.3, 5.0, 5.1, 0.6, 0.7, 0.8]).nonzero()[0].tolist()
+    [4, 5]
+    >>> int(channel_spikes([0.0, 0.1, 0.2, 0.3, 5.0, 5.1, 5.2, 5.3, 5.4]).sum())   # a step stays
+    0
+    """
+    g = np.asarray(values, dtype=float)
+    n = g.size
+    spike = np.zeros(n, bool)
+    if n < 5:
+        return spike
     d = np.abs(np.diff(g))                       # d[i] = |g[i+1] - g[i]|
     nz = d[d > 0]
     resolution = float(np.median(nz)) if nz.size else 0.0
-    jump_in, jump_out = d[1:-2], d[2:-1]         # for i = 2 .. n-3: |g[i] - g[i-1]|, |g[i+1] - g[i]|
+    # one sample (i = 2 .. n-3): |g[i] - g[i-1]|, |g[i+1] - g[i]| against the steps either side
+    jump_in, jump_out = d[1:-2], d[2:-1]
     around = np.maximum(np.maximum(d[:-3], d[3:]), resolution)
-    spike = np.zeros(f.size, bool)
     spike[2:-2] = (jump_in > SPIKE_RATIO * around) & (jump_out > SPIKE_RATIO * around)
-    return bad | spike
+    s = np.diff(g)                                # signed steps
+    for w in range(2, MAX_BURST + 1):
+        i = np.arange(2, n - w - 1)               # the run i .. i+w-1, with i-2 and i+w+1 in the record
+        if i.size == 0:
+            break
+        into, out = s[i - 1], s[i + w - 1]
+        around = np.maximum(np.maximum(d[i - 2], d[i + w]), resolution)
+        back = np.abs(g[i + w] - g[i - 1]) <= 2 * (w + 1) * around
+        hit = ((np.abs(into) > SPIKE_RATIO * around) & (np.abs(out) > SPIKE_RATIO * around)
+               & (np.sign(into) == -np.sign(out)) & back)
+        for k in range(w):
+            spike[i[hit] + k] = True
+    return spike
 
 
 #: ``sign_from`` of a record whose channel named tensile rises: a tension test.
