@@ -408,3 +408,23 @@ def test_a_tension_record_is_refused_naming_its_peak_line(tmp_path):
             log = read_machine_log(p)
             u, force = log.compression()
             assert log.compression_sign == -1 and force.max() == pytest.approx(f.max(), rel=1e-3) and u.max() > 0
+
+
+def test_specimens_side_by_side_are_one_record_per_file(tmp_path):
+    """A Bluehill export of two specimens side by side (Time, Extension, Load twice): the first
+    match of each channel had fitted specimen 1 and dropped specimen 2 without a word.  It is
+    exit 2 naming the header's line and the columns; one channel named twice (a load and a
+    compressive load) is not several specimens."""
+    rows = "\n".join(f"{0.1 * k:.1f},{-0.01 * k:.3f},{-0.001 * k:.4f},{0.1 * k:.1f},{-0.01 * k:.3f},"
+                     f"{-0.002 * k:.4f}" for k in range(30))
+    p = tmp_path / "side.csv"
+    p.write_text("Specimen 1,,,Specimen 2,,\nTime,Extension,Load,Time,Extension,Load\n(s),(mm),(N),(s),(mm),(N)\n"
+                 + rows + "\n")
+    with pytest.raises(InputError) as e:
+        read_machine_log(p)
+    assert e.value.line == 2 and "2 specimens side by side" in str(e.value)
+    assert "load in columns 3, 6" in str(e.value)
+    q = tmp_path / "two_loads.csv"
+    q.write_text("Time,Extension,Load,Load\n(s),(mm),(N),(N)\n" + "\n".join(
+        f"{0.1 * k:.1f},{-0.01 * k:.3f},{-0.001 * k:.4f},{-0.001 * k:.4f}" for k in range(30)) + "\n")
+    assert len(read_machine_log(q)) == 30

@@ -234,6 +234,26 @@ def _roles(names: list[str]) -> dict[str, int]:
     return found
 
 
+def _one_specimen(path, names: list[str], h: int) -> None:
+    """A names row that holds every channel twice or more is several specimens side by side
+    (a Bluehill export of all specimens): one record per file (exit 2) -- the first
+    match of each channel would have fitted the first specimen and dropped the others."""
+    count = {r: 0 for r in _REQUIRED}
+    cols: dict[str, list[int]] = {r: [] for r in _REQUIRED}
+    for j, cell in enumerate(names):
+        key = normalise_name(split_name_unit(cell, _ALL_ROLE_NAMES)[0])
+        for role in _REQUIRED:
+            if key in ROLE_NAMES[role]:
+                count[role] += 1
+                cols[role].append(j + 1)
+    n = min(count.values())
+    if n >= 2:
+        raise InputError(f"the header names every channel {n} times ("
+                         + "; ".join(f"{r} in columns {', '.join(map(str, c))}" for r, c in cols.items())
+                         + f"): {n} specimens side by side; one record per file is supported: export each "
+                           "specimen to its own file", path=path, line=h + 1)
+
+
 def _find_header(lines: list[str]) -> tuple[int, str | None, list[str], dict[str, int]] | None:
     """The first line naming at least two of time, extension and load, with its delimiter,
     that data rows follow.
@@ -328,6 +348,8 @@ def read_machine_log(path: str | os.PathLike) -> MachineLog:
     if missing:
         raise InputError(f"the header has no {missing[0]} column (found {', '.join(names_row)}; "
                          f"expected {_EXAMPLE[missing[0]]})", path=path, line=h + 1)
+
+    _one_specimen(path, names_row, h)
 
     metadata, geometry_rows, raw_marker = _read_preamble(lines[:h], delim)
 
