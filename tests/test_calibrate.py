@@ -146,6 +146,22 @@ def test_real_stereo_baseline(left_views, right_views):
     assert abs(st.rms_px - 0.447) < 0.02
 
 
+def test_one_folder_given_for_both_stereo_cameras_is_exit_2(tmp_path):
+    """The same images for both C-arms (one folder twice, or a copy): exit 1 had said the
+    relative poses disagree ("median 1.71e-06 deg ... names shifted?") when they agree exactly."""
+    (tmp_path / "left").mkdir()
+    for f in sorted(STEREO.glob("left*.jpg"))[:6]:
+        shutil.copy(f, tmp_path / "left" / f.name)
+    shutil.copytree(tmp_path / "left", tmp_path / "copy")
+    for b in ("left", "copy"):
+        out = tmp_path / f"out_{b}"
+        r = CliRunner().invoke(cli, ["calibrate", "--stereo", f"a={tmp_path / 'left'}", "--stereo", f"b={tmp_path / b}",
+                                     "--pattern", "chessboard", "--grid", "9x6", "--spacing-mm", "25", "--no-loop",
+                                     "-o", str(out)])
+        assert r.exit_code == 2 and "every image of camera b is one of camera a's" in r.output, r.output
+        assert str(tmp_path / b) in r.output and not out.exists()
+
+
 def test_calibrate_command_stereo_files(tmp_path):
     """The contract's --stereo form on the real pair: calibration.json keys, MayaCam files
     that parse, residual figures; the loop report in its contract shape."""
@@ -352,6 +368,13 @@ def test_unreadable_and_mismatched_images_exit_2(tmp_path):
     r = CliRunner().invoke(cli, args)
     assert r.exit_code == 2 and "left05.png" in r.output and "expected 640x480" in r.output, r.output
     assert not (tmp_path / "o" / "calibration.json").exists()
+    # the images as a glob: the message names the file (it had named the glob, "*.png, frame 4";
+    # frame 4: the files' counter skips left04)
+    for f in d.glob("*.jpg"):
+        cv2.imwrite(str(f.with_suffix(".png")), cv2.imread(str(f)))
+    args[2] = str(d / "*.png")
+    r = CliRunner().invoke(cli, args)
+    assert r.exit_code == 2 and f"{d / 'left05.png'}, frame 4" in r.output and "*" not in r.output, r.output
 
 
 # --- the X-ray dot grid -------------------------------------------------------------------------

@@ -216,6 +216,21 @@ def test_wrong_circle_grid_exits_2_naming_the_grid_the_views_show(tmp_path, args
     assert ok.exit_code == 0, ok.output
 
 
+@pytest.mark.parametrize("invert", [False, True])
+def test_wrong_polarity_exits_2_naming_the_polarity_the_views_show(tmp_path, invert):
+    """Dark beads with --polarity bright (and bright ones with the default dark) had been exit 1
+    pointing at --diameter-px ("no bright blobs found ... give --diameter-px")."""
+    d = tmp_path / "views"
+    d.mkdir()
+    for k, img in enumerate(_bead_views()):
+        cv2.imwrite(str(d / f"v{k}.png"), 255 - img if invert else img)
+    wrong, right = ("dark", "bright") if invert else ("bright", "dark")
+    r = CliRunner().invoke(cli, ["calibrate", "--images", str(d), "--pattern", "circles", "--grid", "6x5",
+                                 "--spacing-mm", "10", "--polarity", wrong, "--no-loop", "-o", str(tmp_path / "o")])
+    assert r.exit_code == 2 and f"is it --polarity {right}?" in r.output and "v0.png" in r.output, r.output
+    assert not (tmp_path / "o").exists()
+
+
 def test_grid_larger_than_the_plate_in_every_view_is_warned(tmp_path):
     """--grid 7x5 for a 6x5 plate: read as a grid cut off by the field, it calibrates (exit 0),
     but every view showing the same 30 of 35 points gets a ``grid-never-whole`` warning; the

@@ -189,10 +189,11 @@ def _detect_source(path: str, cfg: CalibrateConfig, kind: str, size: list, views
     camera's views (rejected, and in ``copies``: key -> the first's key) and still pairs as a
     stereo frame.  ``spacings`` (key -> (cornerSubPix half window, least corner spacing)) for
     chessboards."""
+    import glob
     import hashlib
     from ..imaging.gridfind import DetectionFailed, GridDetection, GridMismatch, find_target, parse_grid
     from ..imaging.calibrate import ViewData
-    from ..io.images import iter_frames
+    from ..io.images import iter_frames, list_image_files
 
     grid = parse_grid(cfg.grid)
     kw = {}
@@ -202,13 +203,16 @@ def _detect_source(path: str, cfg: CalibrateConfig, kind: str, size: list, views
         kw = {"marker_mm": cfg.marker_mm, "dictionary": cfg.dictionary}
     ambiguous = False
     from ..imaging.gridfind import field_centre
+    # the file each frame came from, for messages: a folder's or a glob's own file, else the
+    # source itself (a stack, a video, a multi-frame DICOM)
+    files = {f.name: str(f) for f in list_image_files(path)} if os.path.isdir(path) or glob.has_magic(str(path)) \
+        else {}
     for fr in iter_frames(path, check_size=False):  # sizes checked over the whole camera: _check_sizes
         if size[2] is None:
             size[2] = field_centre(fr.image) or "none"
         h, w = fr.image.shape
         key = fr.name if kind == "view" else f"stereo/{fr.name}"
-        sizes[key] = ((w, h), os.path.join(path, fr.name) if os.path.isdir(path) else path, fr.index,
-                      fr.image.dtype)
+        sizes[key] = ((w, h), files.get(fr.name, path), fr.index, fr.image.dtype)
         if size[0] is None:
             size[0], size[1] = (w, h), f"{path}: {fr.name}"
         digest = hashlib.sha1(np.ascontiguousarray(fr.image).tobytes()).hexdigest()
@@ -335,6 +339,34 @@ def _chessboard_named(name: str, cfg: CalibrateConfig, sizes: dict, rejected: di
             raise InputError(f"camera {name}: no image shows a {cfg.grid} chessboard; this one's has {found[0]}x"
                              f"{found[1]} inner corners: is it --grid {found[0]}x{found[1]}? (a chessboard's --grid "
                              "counts inner corners, COLSxROWS: one less than its squares)", path=path)
+
+
+def _polarity_named(name: str, cfg: CalibrateConfig, sizes: dict, rejected: dict, n_probe: int = 3) -> None:
+    """No image of a camera shows its bead grid with ``--polarity``: where most of the first
+    few show it with the other polarity, an InputError (exit 2) says so; a wrong polarity had
+    been exit 1, 'no bright blobs found ... give --diameter-px'."""
+    from ..imaging.gridfind import DetectionFailed, find_target, parse_grid
+    from ..io.images import read_image
+    other = "bright" if cfg.polarity == "dark" else "dark"
+    probed = found = 0
+    path = None
+    for key in [k for k in rejected if k in sizes][:n_probe]:
+        _, p, _, _ = sizes[key]
+        try:
+            img = read_image(p)
+        except InputError:
+            continue
+        probed += 1
+        try:
+            find_target(img, cfg.pattern, parse_grid(cfg.grid), cfg.spacing_mm, polarity=other,
+                        diameter_px=cfg.diameter_px)
+        except DetectionFailed:
+            continue
+        found += 1
+        path = path or p
+    if probed and 2 * found > probed:
+        raise InputError(f"camera {name}: no image shows the {cfg.grid} grid of {cfg.polarity} beads; {found} of the "
+                         f"first {probed} show it with {other} beads: is it --polarity {other}?", path=path)
 
 
 def _grid_mismatch_error(name: str, cfg: CalibrateConfig, mismatches: dict, path: str) -> InputError:
@@ -517,6 +549,7 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
     warnings: list[dict] = []
     rs = ResultSet(out, primary="calibration.json")
     inputs: list[str] = []
+    camera_pixels: dict[str, set] = {}     # camera -> the digests of its images' pixels
     for name, sources in cameras.items():
         views: dict = {}
         rejected: dict[str, str] = {}
@@ -532,6 +565,13 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
             frames = stereo_frames.setdefault(name, {}) if kind == "stereo" else None
             ambiguous_any |= _detect_source(path, cfg, kind, size, views, rejected, frames, sizes, mismatches, seen,
                                             copies, spacings)
+        mine = set(seen)
+        for other, theirs in camera_pixels.items():
+            if mine and mine <= theirs:
+                raise InputError(f"every image of camera {name} is one of camera {other}'s, pixel for pixel (the "
+                                 "same folder, or copies of it, given for both): each C-arm needs its own views",
+                                 path=sources[0][1])
+        camera_pixels[name] = mine
 
         if copies:
             warnings.append(warning(
@@ -546,6 +586,8 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
         if len(views) < 3:
             if not views and not mismatches and cfg.pattern == "chessboard":
                 _chessboard_named(name, cfg, sizes, rejected)
+            if not views and cfg.pattern in ("circles", "asymmetric-circles"):
+                _polarity_named(name, cfg, sizes, rejected)
             if mismatches and 2 * len(mismatches) >= len(rejected):  # --grid does not fit the board
                 raise _grid_mismatch_error(name, cfg, mismatches, sources[0][1])
             why = f" ({len(rejected)} failed: {_failures(rejected)})" if rejected else ""
