@@ -77,6 +77,16 @@ class _LoopFit:
     success: bool
 
 
+#: The terms an effect switches on (a model with more of them contains one with fewer).
+_TERMS = ("rational", "thin_prism", "s_distortion", "local")
+
+
+def _contains(big: ModelSpec, small: ModelSpec) -> bool:
+    """Whether ``big`` has every term ``small`` has (and the same fixed parameters)."""
+    return (all(getattr(small, f) <= getattr(big, f) for f in _TERMS)
+            and (small.fix_aspect_ratio, small.fix_principal_point) == (big.fix_aspect_ratio, big.fix_principal_point))
+
+
 class CalibrationLoop:
     """Fits and held-out errors of camera models on a fixed set of views, cached by spec."""
 
@@ -89,8 +99,15 @@ class CalibrationLoop:
         self._folds: dict[ModelSpec, list[dict]] = {}
 
     def calibration(self, spec: ModelSpec) -> Calibration:
+        """The fit of ``spec``, started from the richest model fitted so far that it contains
+        (the loop's current model, which it augments by one effect), else the declared one.
+        From the declared camera, S-distortion plus a local correction had run off to fx 3014,
+        fy 2762, cy -70 px (truth 3300, 3300, 500), its leave-one-view-out refits to a held-out
+        RMS of 65 px, and the loop turned down the correction the data needed."""
         if spec not in self._cals:
-            self._cals[spec] = calibrate_camera(self.views, self.image_size, spec, init=self.base.camera,
+            init = max((c for k, c in self._cals.items() if _contains(spec, k)),
+                       key=lambda c: sum(getattr(c.camera.spec, f) for f in _TERMS), default=self.base)
+            self._cals[spec] = calibrate_camera(self.views, self.image_size, spec, init=init.camera,
                                                 twist_centre_px=self.base.camera.twist_centre_px)
         return self._cals[spec]
 
