@@ -523,6 +523,14 @@ CASES: list[Case] = [
     _c("export-markers-duplicate", "export-fe", "markers_ct.csv with a second, different row of a marker in a frame",
        lambda b, d: (["export-fe", _config_edit(b.configs["export"], d / "e.yaml", lambda c: c["inputs"].update(
            markers_ct=str(_marker_row_twice(b, d))))], d / "markers_ct_twice.csv", "line 3")),
+    # registration.json of another register run (another CT: everything 60 mm along x), with
+    # this run's markers_ct.csv: exit 0 had placed the indentor 60 mm off (800 mm in the probe)
+    _c("export-registration-other-run", "export-fe", "registration.json of another run than markers_ct.csv",
+       lambda b, d: (["export-fe", _config_edit(b.configs["export"], d / "e.yaml", lambda c: c["inputs"].update(
+           registration=str(_registration_moved(b, d))))], b.register / "markers_ct.csv", "different register runs")),
+    _c("export-markers3d-other-trial", "export-fe", "inputs.markers3d of another trial than the registration",
+       lambda b, d: (["export-fe", _config_edit(b.configs["export"], d / "e.yaml", lambda c: c["inputs"].update(
+           markers3d=str(_markers3d_moved(b, d))))], d / "markers3d.csv", "registration is of another trial")),
     _c("export-log-no-contact", "export-fe", "the indentation log never loads the tissue",
        lambda b, d: (["export-fe", _config_edit(b.configs["export"], d / "e.yaml", lambda c: c["inputs"].update(
            log=str(_flat_indentation_log(b, d))))], d / "log.csv", None), expect=1),
@@ -588,6 +596,23 @@ def _marker_row_twice(b: Base, d: Path) -> Path:
     df["z_mm"] += 3.0
     df["dz_mm"] += 3.0
     return _put(d / "markers_ct_twice.csv", [lines[0], lines[1], *df.to_csv(index=False).splitlines()[1:], *lines[2:]])
+
+
+def _registration_moved(b: Base, d: Path) -> Path:
+    """The run's registration.json as a registration to a CT 60 mm along x would be."""
+    reg = json.loads((b.register / "registration.json").read_text())
+    reg["t_mm"][0] += 60.0
+    reg["reference_ct_mm"] = {n: [x + 60.0, y, z] for n, (x, y, z) in reg["reference_ct_mm"].items()}
+    (d / "registration.json").write_text(json.dumps(reg))
+    return d / "registration.json"
+
+
+def _markers3d_moved(b: Base, d: Path) -> Path:
+    """The run's markers3d.csv 25 mm along x: another trial, the head placed elsewhere."""
+    m3 = pd.read_csv(b.track / "markers3d.csv")
+    m3["x_mm"] += 25.0
+    m3.to_csv(d / "markers3d.csv", index=False)
+    return d / "markers3d.csv"
 
 
 def _flat_indentation_log(b: Base, d: Path) -> Path:

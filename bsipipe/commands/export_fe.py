@@ -27,6 +27,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 
 from ..config import load_yaml, validate
 from ..errors import InputError, ProcessingError
@@ -89,6 +90,59 @@ def read_registration(path):
     return Similarity(R, t, scale), reg
 
 
+#: markers_ct.csv's references at the registration frame may lie this far from registration.json's
+#: CT positions of them (mm) -- their FRE is hundredths; another run's files are metres apart.
+SAME_RUN_TOL_MM = 1.0
+
+
+def _same_run(reg: dict, reg_path, markers_ct: pd.DataFrame, markers_path) -> None:
+    """``markers_ct.csv`` and ``registration.json`` must come from one ``register`` run: the
+    references' rows at the registration frame lie where the registration put their CT
+    positions (within their FRE; :data:`SAME_RUN_TOL_MM`).  A registration.json written
+    before it recorded those positions is not checked."""
+    ref = reg.get("reference_ct_mm")
+    frame = reg.get("frame")
+    if not isinstance(ref, dict) or frame is None:
+        return
+    at = markers_ct[markers_ct["frame"] == frame].set_index("marker")
+    off = {}
+    for name, xyz in ref.items():
+        if name in at.index:
+            p = at.loc[name, ["x_mm", "y_mm", "z_mm"]].to_numpy(float)
+            if np.all(np.isfinite(p)):
+                off[name] = float(np.linalg.norm(p - np.asarray(xyz, float)))
+    if not off:
+        raise InputError(f"holds none of the registration's references ({', '.join(ref)}) at its frame {frame}: "
+                         f"it and {reg_path} come from different register runs", path=markers_path)
+    worst = max(off, key=off.get)
+    if off[worst] > SAME_RUN_TOL_MM:
+        raise InputError(f"reference {worst} at the registration frame {frame} lies {off[worst]:.4g} mm from where "
+                         f"{reg_path} has it in CT (more than {SAME_RUN_TOL_MM:g} mm): the two files come from "
+                         "different register runs", path=markers_path)
+
+
+def _same_trial(reg: dict, reg_path, transform, tracks: pd.DataFrame, tracks_path) -> None:
+    """``markers3d.csv`` must be the trial ``registration.json`` registered: its references at
+    the registration frame, mapped by the registration, lie at their CT positions (within
+    :data:`SAME_RUN_TOL_MM`; unchecked for a registration.json without them)."""
+    ref = reg.get("reference_ct_mm")
+    frame = reg.get("frame")
+    if not isinstance(ref, dict) or frame is None:
+        return
+    at = tracks[tracks["frame"] == frame].set_index("marker")
+    off = {}
+    for name, xyz in ref.items():
+        if name in at.index:
+            x = at.loc[name, ["x_mm", "y_mm", "z_mm"]].to_numpy(float)
+            if np.all(np.isfinite(x)):
+                off[name] = float(np.linalg.norm(transform.apply(x[None])[0] - np.asarray(xyz, float)))
+    if off and max(off.values()) > SAME_RUN_TOL_MM:
+        worst = max(off, key=off.get)
+        raise InputError(f"reference {worst} at the registration frame {frame}, mapped by {reg_path}, lies "
+                         f"{off[worst]:.4g} mm from its CT position there (more than {SAME_RUN_TOL_MM:g} mm): the "
+                         "registration is of another trial", path=tracks_path)
+
+
 def read_log(path):
     from ..fe.export import LogRecord
     from ..io.machine_log import read_machine_log
@@ -140,12 +194,14 @@ def run(config: str | os.PathLike, *, out: str | os.PathLike) -> dict:
     markers_ct = read_markers_ct(inp.markers_ct)
     check_same_coordinate_system(coordinate_system_of(markers_ct, inp.markers_ct), inp.markers_ct,
                                  reg.get("ct_coordinate_system"), inp.registration)
+    _same_run(reg, inp.registration, markers_ct, inp.markers_ct)
     log_record, machine_log = read_log(inp.log)
     indentor_xray = None
     if inp.markers3d is not None:
         if not Path(inp.markers3d).exists():
             raise InputError("file not found", path=inp.markers3d, key="inputs.markers3d")
         indentor_xray = read_markers3d(inp.markers3d)
+        _same_trial(reg, inp.registration, transform, indentor_xray, inp.markers3d)
     mesh = None
     if cfg.mesh is not None:
         mesh = read_mesh(cfg.mesh, (cfg.mesh_sets.interface, cfg.mesh_sets.indentor))

@@ -498,7 +498,7 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
     """
     from ..geometry import registration as reg
     from ..geometry.registration_effects import (MIN_REFERENCES, RegistrationData, RegistrationSpec,
-                                                 close_registration_loop, reference_checks)
+                                                 close_registration_loop, ct_positions, reference_checks)
     from ..io.slicer import read_markups
     from ..provenance import ResultSet, provenance
     from ..quality import warning
@@ -663,6 +663,11 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
                                    "the trial, their common translation taken out"},
         "model": spec.describe(),
         "fre_mm": {n: float(e) for n, e in zip(found, fre)},
+        # the references' CT positions (labels given back where the loop found them mixed up):
+        # with "frame", what markers_ct.csv's reference rows of that frame must be near
+        # (export-fe checks that the two files come from one run)
+        "reference_ct_mm": {n: [float(c) for c in y] for n, y in zip(found, ct_positions(data, spec))
+                            if n not in spec.moved},
         "fre_rms_mm": fre_rms,
         "fle_mm": fle, "fle_dof": int(fle_dof),
         "fle_method": "3 RSS / (3N - p) over the used references (N - 2 for rigid: Fitzpatrick's <FRE^2> = (1 - 2/N) FLE^2)",
