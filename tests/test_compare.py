@@ -531,3 +531,34 @@ def test_abaqus_cae_parts_are_placed_by_their_instances(tmp_path):
     cae.write_text(f"*Part, name=BRAIN\n{body}\n*End Part\n*Assembly, name=Assembly\n{twice}*End Assembly\n")
     with pytest.raises(InputError, match="part BRAIN is instanced 2 times"):
         read_abaqus_mesh(cae)
+
+
+def test_mesh_or_displacements_in_metres_read_as_mm(tmp_path):
+    """A mesh written in metres without --length-unit m had been exit 1 "no marker lies in the
+    mesh ... outside the mesh", as if the markers were wrong: it is exit 2 saying the mesh's
+    coordinates look like metres.  Displacements in metres on a mesh in mm had given exit 0
+    with sigma the size of the measured motion and no word (a CSV whose ux_mm columns hold
+    metres): a warning now gives the ratio."""
+    coords, conn = brick_hex(3, 3, 3, size=SIZE)
+    X = points_inside(6, size=SIZE, margin=0.3, seed=3)
+    names = [f"M{i + 1}" for i in range(6)]
+    u = linear_field(coords)
+    write_markers_ct(tmp_path / "m.csv", names, X, linear_field(X))
+    ids = write_inp(tmp_path / "mesh_m.inp", coords / 1000.0, [("C3D8", conn)])
+    write_disp_csv(tmp_path / "u_m.csv", ids, u / 1000.0)
+    r = _invoke("compare", "--fe-displacements", tmp_path / "u_m.csv", "--mesh", tmp_path / "mesh_m.inp",
+                "--markers", tmp_path / "m.csv", "-o", tmp_path / "a")
+    assert r.exit_code == 2 and "mesh_m.inp" in r.output and "--length-unit m" in r.output, r.output
+    pd.DataFrame({"node": ids, "ux_m": u[:, 0] / 1000.0, "uy_m": u[:, 1] / 1000.0, "uz_m": u[:, 2] / 1000.0}
+                 ).to_csv(tmp_path / "u_metres.csv", index=False, float_format="%.17g")
+    r = _invoke("compare", "--fe-displacements", tmp_path / "u_metres.csv", "--mesh", tmp_path / "mesh_m.inp",
+                "--markers", tmp_path / "m.csv", "--length-unit", "m", "-o", tmp_path / "b")
+    assert r.exit_code == 0, r.output
+    res = json.loads((tmp_path / "b" / "compare.json").read_text())
+    assert res["sigma_mm"] < 1e-6 and not any("length unit" in w for w in res["warnings"])
+    ids = write_inp(tmp_path / "mesh.inp", coords, [("C3D8", conn)])
+    r = _invoke("compare", "--fe-displacements", tmp_path / "u_m.csv", "--mesh", tmp_path / "mesh.inp",
+                "--markers", tmp_path / "m.csv", "-o", tmp_path / "c")
+    assert r.exit_code == 0, r.output
+    res = json.loads((tmp_path / "c" / "compare.json").read_text())
+    assert any("0.001 times the measured ones" in w for w in res["warnings"]), res["warnings"]

@@ -50,6 +50,56 @@ class CompareConfig(StrictModel):
                                                            "displacement of the nearest element surface point")
 
 
+#: Length units a mesh may be written in, and their size in mm.
+_UNIT_MM = {"m": 1000.0, "cm": 10.0, "mm": 1.0, "um": 1e-3}
+
+
+def _units_hint(nodes_mm: np.ndarray, markers_mm: np.ndarray, length_unit: str) -> str | None:
+    """Why no marker is in the mesh, where the mesh's coordinates are in other units than
+    ``length_unit`` says: as read, the markers lie more than twice the mesh's size away from
+    its bounding box, and scaled by another unit's size the box (grown by a tenth) holds most
+    of them.  None when no unit explains it."""
+    lo, hi = nodes_mm.min(axis=0), nodes_mm.max(axis=0)
+    read_mm = _UNIT_MM[length_unit]
+
+    def inside(k: float) -> float:
+        a, b = lo * k, hi * k
+        pad = 0.1 * (b - a)
+        return float(np.mean(np.all((markers_mm >= a - pad) & (markers_mm <= b + pad), axis=1)))
+
+    span = float(np.max(hi - lo))
+    # as read, the markers lie well away from the mesh (not just past its surface)
+    away = float(np.median(np.linalg.norm(np.maximum(lo - markers_mm, 0) + np.maximum(markers_mm - hi, 0), axis=1)))
+    if not away > 2 * span:
+        return None
+    for unit, mm in _UNIT_MM.items():
+        k = mm / read_mm
+        if unit != length_unit and inside(k) >= 0.5 > inside(1.0):
+            hint = "--length-unit m" if unit == "m" else f"in {unit}, which compare does not read (mm or m)"
+            return (f"its nodes span {span:.3g} {length_unit} while the markers lie about "
+                    f"{float(np.median(np.linalg.norm(markers_mm - 0.5 * (lo + hi), axis=1))):.3g} mm from its centre; "
+                    f"read as {unit} the mesh holds {100 * inside(k):.0f} % of them: its coordinates look like {unit} "
+                    f"({hint})")
+    return None
+
+
+def _scale_warning(model_mm: np.ndarray, measured_mm: np.ndarray) -> str | None:
+    """A warning where the model's displacements at the markers are a hundredth of the
+    measured ones or less (or a hundred times or more), median over the markers: a length
+    unit the FE result was written in other than the mesh's (metres read as mm), not a model
+    that is merely stiff or soft."""
+    m = np.linalg.norm(model_mm, axis=1)
+    d = np.linalg.norm(measured_mm, axis=1)
+    if not (np.median(m) > 0 and np.median(d) > 0):
+        return None
+    r = float(np.median(m) / np.median(d))
+    if 0.01 < r < 100:
+        return None
+    return (f"the model's displacements at the markers are {r:.3g} times the measured ones (medians "
+            f"{np.median(m):.3g} and {np.median(d):.3g} mm): the FE result is likely in another length unit than "
+            "the mesh (metres read as mm?); sigma is not meaningful until they agree")
+
+
 def run(fe_displacements: str | os.PathLike, mesh: str | os.PathLike, markers: str | os.PathLike, *,
         out: str | os.PathLike, frame: int | None = None, marker_names: Sequence[str] = (),
         fe_result: int | None = None, length_unit: str = "mm", outside_tol_mm: float = 0.0) -> dict:
@@ -150,10 +200,16 @@ def run(fe_displacements: str | os.PathLike, mesh: str | os.PathLike, markers: s
     if skipped:
         warnings.append("skipped " + "; ".join(f"{k}: {v}" for k, v in skipped.items()))
     if not keep:
+        units = _units_hint(fe_mesh.coords_mm, mf.position_mm, cfg.length_unit) if not loc.found.any() else None
+        if units is not None:
+            raise InputError(f"no marker lies in the mesh: {units}", path=mesh)
         raise ProcessingError(f"no marker lies in the mesh with FE displacements in frame {F}: "
                               + "; ".join(f"{k}: {v}" for k, v in skipped.items()), path=mesh, frame=F)
     names = [mf.names[i] for i in keep]
     res = compare_displacements(names, u_model[keep], mf.measured_mm[keep])
+    scale = _scale_warning(u_model[keep], mf.measured_mm[keep])
+    if scale:
+        warnings.append(scale)
 
     per_marker = {}
     for i in keep:
