@@ -853,6 +853,24 @@ def _frame_rates(table: pd.DataFrame) -> dict[str, float]:
     return rates
 
 
+#: A seeded marker found in fewer than this fraction of its view's frames is a warning: the
+#: indentor hides a marker for a while (the twin's two hidden ones are found in 53 and 64 % of
+#: the frames), but one found in a few frames was mostly too faint to find.
+RARELY_FOUND = 0.25
+
+
+def _rarely_found(table: pd.DataFrame) -> dict[str, dict[str, tuple[int, int]]]:
+    """View -> marker -> (frames found, frames) for the markers found in fewer than
+    :data:`RARELY_FOUND` of their view's frames (rows of missing frames not counted)."""
+    out: dict[str, dict[str, tuple[int, int]]] = {}
+    t = table[table["status"] != "missing-frame"] if "status" in table.columns else table
+    for (v, m), g in t.groupby(["view", "marker"], sort=False):
+        k, n = int(g["found"].sum()), int(g["frame"].nunique())
+        if n and k < RARELY_FOUND * n:
+            out.setdefault(str(v), {})[str(m)] = (k, n)
+    return out
+
+
 def _sequence_warnings(table: pd.DataFrame, events: list[dict], cfg, views, info: dict, seeded: bool):
     """What the frames themselves tell against the tracks: frames missing from the numbering
     (their rows added to the table, status missing-frame), frames without any marker, views
@@ -901,6 +919,15 @@ def _sequence_warnings(table: pd.DataFrame, events: list[dict], cfg, views, info
             + _frames_listed(empty) + "): " + "; ".join(why) + "; the markers were followed across them (lost and "
               "refound events), the frames have no 3-D point from that view",
             log, frames=empty, without_picture=dark, with_picture=lit))
+    rare = _rarely_found(table) if seeded else {}
+    if rare:
+        out.append(warning(
+            "markers-rarely-found",
+            f"track: seeded markers found in fewer than {100 * RARELY_FOUND:.0f} % of their view's frames ("
+            + "; ".join(f"{v}: " + ", ".join(f"{m} {k} of {n}" for m, (k, n) in ms.items()) for v, ms in rare.items())
+            + "): too faint for the noise, or hidden; their tracks and 3-D points are mostly missing and what was "
+              "found may be noise: look at the frames (a config's detection.window_k_sigma lowers the search threshold)",
+            log, markers={v: {m: {"found": k, "frames": n} for m, (k, n) in ms.items()} for v, ms in rare.items()}))
     counts = {v: info[v]["n_frames"] for v in views}
     last = {v: int(table.loc[table["view"] == v, "frame"].max()) for v in views}
     if len(set(counts.values())) > 1 and len(set(last.values())) > 1:
