@@ -292,3 +292,20 @@ def test_track_warns_of_seeded_markers_found_in_few_frames(twin, tmp_path):
     w = [w for w in res["warnings"] if w["code"] == "markers-rarely-found"]
     assert len(w) == 1 and w[0]["markers"] == {"cam2": {"M2": {"found": 1, "frames": 8}}}, res["warnings"]
     assert "cam2: M2 1 of 8" in w[0]["message"]
+
+
+def test_track_views_swapped_against_the_calibration_is_exit_2(twin, tmp_path):
+    """Each --view given the other camera's frames (and seeds named accordingly): the tool
+    had worked out that the views were swapped (a view-orientation warning), then written
+    markers3d.csv with every point millimetres off and exited 0.  It is exit 2, nothing
+    written."""
+    seeds = pd.read_csv(twin / "synth/seeds.csv")
+    seeds["view"] = seeds["view"].map({"cam1": "cam2", "cam2": "cam1"})
+    seeds.to_csv(tmp_path / "seeds.csv", index=False)
+    out = tmp_path / "out"
+    r = CliRunner().invoke(cli, [str(a) for a in (
+        "track", "--view", f"cam1={twin / 'synth/sequence/cam2'}", "--view", f"cam2={twin / 'synth/sequence/cam1'}",
+        "--calibration", twin / "calibrate/calibration.json", "--seeds", tmp_path / "seeds.csv", "--fps", "0.5",
+        "-o", out)])
+    assert r.exit_code == 2 and "look swapped against the calibration" in r.output, r.output
+    assert "sequence/cam2" in r.output and not out.exists()

@@ -1070,6 +1070,14 @@ def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, 
                 + " (seed each in both views under the same name to triangulate it)", log, markers=alone))
     loop_dict, fit, _ = close_stereo_loop(data, loop=cfg.loop, max_offset_s=cfg.max_offset_s)
     turned = orientation_check(data, {v: info[v]["frame_shape_px"] for v in pair})
+    if turned is not None and turned["orientation"] == "swapped":
+        # the --view names are the other way round from the calibration's cameras: every 3-D
+        # point would be wrong by millimetres, and the fix is the user's (exit 2)
+        raise InputError(
+            f"the frames of {pair[0]} and {pair[1]} look swapped against the calibration (each view's frames are "
+            f"the other camera's): the rays' median gap is {turned['median_gap_mm']:.3g} mm with the views "
+            f"exchanged, {turned['median_gap_as_is_mm']:.3g} mm as given ({turned['n_points']} two-view points); "
+            "give each --view its own camera's frames (and the seeds their view's names)", path=cfg.views[pair[0]])
     if turned is not None:
         what = (f"the frames of {turned['view']} look swapped against the calibration (each view's frames "
                 "are the other camera's)" if turned["orientation"] == "swapped" else
