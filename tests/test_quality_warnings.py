@@ -309,3 +309,23 @@ def test_track_views_swapped_against_the_calibration_is_exit_2(twin, tmp_path):
         "-o", out)])
     assert r.exit_code == 2 and "look swapped against the calibration" in r.output, r.output
     assert "sequence/cam2" in r.output and not out.exists()
+
+
+def test_track_warns_when_the_calibration_no_longer_fits(twin, tmp_path):
+    """The stereo calibration's rotation turned by 2 degrees (a C-arm moved after it was
+    calibrated): every point's rays miss by about as much, which the ray-gap flags, judging
+    each point against its marker's median, cannot see (a 1 degree turn and a 5 mm shift on
+    the default twin had been exit 0 without a warning).  The reprojection RMS against what
+    the calibration's own RMS and the markers' centre error explain says so; the clean twin
+    says nothing (test_track_flags_a_point_with_a_large_ray_gap)."""
+    from scipy.spatial.transform import Rotation
+    cal = json.loads((twin / "calibrate/calibration.json").read_text())
+    R = np.asarray(cal["stereo"]["R"])
+    cal["stereo"]["R"] = (Rotation.from_euler("y", 2.0, degrees=True).as_matrix() @ R).tolist()
+    (tmp_path / "cal.json").write_text(json.dumps(cal))
+    r = _invoke("track", "--view", f"cam1={twin / 'synth/sequence/cam1'}", "--view",
+                f"cam2={twin / 'synth/sequence/cam2'}", "--calibration", tmp_path / "cal.json",
+                "--seeds", twin / "synth/seeds.csv", "--fps", "0.5", "-o", tmp_path / "out")
+    res = json.loads((tmp_path / "out" / "track.json").read_text())
+    w = [w for w in res["warnings"] if w["code"] == "calibration-mismatch"]
+    assert len(w) == 1 and w[0]["reprojection_rms_px"] > 1.5 * w[0]["expected_px"], res["warnings"]

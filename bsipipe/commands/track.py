@@ -475,6 +475,46 @@ def _read_calibration(path, views: Sequence[str]):
         raise InputError(f"invalid calibration: {e}", path=path) from None
 
 
+#: The triangulated points' reprojection RMS may be this many times what the calibration's own
+#: stereo RMS and the markers' measured noise explain before the calibration is said not to
+#: fit the frames (the twin: 0.59 times; a C-arm turned 1 degree since the calibration: 1.9;
+#: moved 5 mm: 4.1).
+CALIBRATION_FIT_FACTOR = 1.5
+
+
+def _calibration_fit_warning(loop: dict, table: pd.DataFrame, calibration, pair) -> dict | None:
+    """``calibration-mismatch`` when the two-view points reproject more than
+    :data:`CALIBRATION_FIT_FACTOR` times the root sum of squares of the calibration's stereo
+    RMS and the markers' own centre error (0.798 / SNR per axis, RMS over the found
+    positions, times sqrt 2 for the two axes): the C-arms moved since they were calibrated, or
+    the calibration is another setup's.  The ray-gap flags compare points with the sequence's
+    own median, so an error common to every point passes them."""
+    from ..quality import warning
+    try:
+        with open(calibration, encoding="utf-8") as f:
+            cal_rms = float(json.load(f)["stereo"]["rms_px"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    final = (loop or {}).get("final") or {}
+    rms = final.get("reprojection_rms_px")
+    found = table[table["found"] & table["view"].isin(pair)]
+    snr = found["snr"].to_numpy(float) if "snr" in found else np.zeros(0)
+    snr = snr[np.isfinite(snr) & (snr > 0)]
+    if rms is None or not np.isfinite(cal_rms) or not len(snr):
+        return None
+    centre = float(np.sqrt(2.0 * np.mean((0.798 / snr) ** 2)))
+    expected = math.hypot(cal_rms, centre)
+    if rms <= CALIBRATION_FIT_FACTOR * expected:
+        return None
+    return warning(
+        "calibration-mismatch",
+        f"track: the two-view points reproject {rms:.3g} px RMS, {rms / expected:.1f} times what the calibration's "
+        f"own stereo RMS ({cal_rms:.3g} px) and the markers' centre error ({centre:.3g} px) explain; ray gap RMS "
+        f"{final.get('ray_gap_rms_mm', float('nan')):.3g} mm: the C-arms moved since they were calibrated, or the "
+        "calibration is another setup's; every 3-D point is off by about the ray gap", log,
+        reprojection_rms_px=rms, expected_px=expected, calibration_rms_px=cal_rms, centre_error_px=centre)
+
+
 def _progress(total: int | None, desc: str, enabled: bool):
     from tqdm import tqdm
     return tqdm(total=total, desc=desc, unit="frame", file=sys.stderr, disable=not enabled, leave=False)
@@ -1327,6 +1367,9 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     if rig is not None:
         st = _stereo(table, events, warnings, cfg, rig, pair, seed_df, per_view_d, det, rois, info)
         table, points3d, fit = st["table"], st["points3d"], st["fit"]
+        w = _calibration_fit_warning(st["loop"], table, cfg.calibration, pair)
+        if w is not None:
+            warnings.append(w)
     smoothing = None
     if cfg.smooth:
         table, smoothing = _smooth(table)
