@@ -185,3 +185,23 @@ def test_window_source_keeps_to_a_given_region(tmp_path):
     roi = {"cam1": FieldOfView(img.shape[:2], region=mask, given=True)}
     got = WindowSource({"cam1": str(d)}, 4.0, rois=roi).candidates("cam1", {0: [wa, wb]})
     assert len(got[(0, wa)]["x_px"]) == 1 and len(got[(0, wb)]["x_px"]) == 0
+
+
+def test_capture_windows_reach_no_farther_than_a_marker_moves():
+    """One C-arm's picture panning 5 px a frame for 90 frames (the other still): the marker's
+    motion in the other view, 450 px, had set windows of 467 px, the loop "found" static
+    references 261 px from where they were, and the run took 13 minutes instead of 9 s.  The
+    window's reach beyond its own 4 diameters is at most CAPTURE_REACH diameters."""
+    from types import SimpleNamespace
+
+    from bsipipe.imaging.track_effects import CAPTURE_REACH, _refind_windows
+    F = 90
+    own = np.full((F, 1, 2), 500.0)                                 # the track stands still
+    other = np.stack([500.0 + 5.0 * np.arange(F), np.full(F, 400.0)], axis=1)[:, None, :]
+    d = SimpleNamespace(frames=np.arange(F))
+    req, radius = _refind_windows(d, own, other, np.zeros((F, 2)), 0, np.arange(F), 4.0)
+    assert radius == np.ceil(4.0 * 4.0 + CAPTURE_REACH * 4.0) and len(req) == F
+    # a marker's own motion (40 px in the other view) is searched in full
+    other_small = np.stack([500.0 + 0.5 * np.arange(F) * 40 / 44.5, np.full(F, 400.0)], axis=1)[:, None, :]
+    _, r_small = _refind_windows(d, own, other_small, np.zeros((F, 2)), 0, np.arange(F), 4.0)
+    assert r_small == np.ceil(16.0 + 0.5 * (F - 1) * 40 / 44.5)

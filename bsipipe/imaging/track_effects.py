@@ -1039,6 +1039,11 @@ def _capture_runs(g: np.ndarray, s: float, factor: float, min_run: int) -> list[
     return out
 
 
+#: The farthest the loop's track-capture looks for a marker from where its track was, in
+#: marker diameters beyond its window's own 4 (the other view's motion over the run, up to this).
+CAPTURE_REACH = 20.0
+
+
 def _refind_windows(d: StereoData, own: np.ndarray, other: np.ndarray, shift: np.ndarray, j: int, idx: np.ndarray,
                     diameter_px: float) -> tuple[dict, float]:
     """The windows :func:`_refind` searches: ``{frame: [(key, x, y, radius)]}`` and the radius."""
@@ -1047,6 +1052,11 @@ def _refind_windows(d: StereoData, own: np.ndarray, other: np.ndarray, shift: np
     if fin.sum() < 2:
         return {}, 0.0
     ext = float(np.hypot(*(np.nanmax(oth[fin], axis=0) - np.nanmin(oth[fin], axis=0))))
+    # the other view's motion bounds this one's only roughly (another angle, another scale);
+    # beyond CAPTURE_REACH diameters it is no marker's motion but a picture that moved (one
+    # C-arm panning: 450 px had made windows of 467 px, and static references were "found"
+    # 261 px away along rays that met by chance)
+    ext = min(ext, CAPTURE_REACH * diameter_px)
     radius = float(np.ceil(max(4.0 * diameter_px, 12.0) + ext))
     centre = pd.DataFrame(own[idx, j] + shift[idx]).ffill().bfill().to_numpy()
     if not np.isfinite(centre).all():
