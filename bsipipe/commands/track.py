@@ -1132,6 +1132,16 @@ def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, 
                "export the frames as the calibration images were, or calibrate from frames oriented as these"),
             log, **turned))
     loop_dict["time_unit"] = time_unit
+    if fit.spec.occlusion:
+        # the loop's occlusion effect left these samples out of the 3-D points (a marker at the
+        # edge of what hides it, its centre pulled): said in the 2-D table too (status)
+        for v, sus in ((pair[0], data.suspect_a), (pair[1], data.suspect_b)):
+            fi, mi = np.nonzero(sus)
+            if len(fi):
+                cells = pd.MultiIndex.from_arrays([data.frames[fi], np.asarray(data.markers, dtype=object)[mi]])
+                at = pd.MultiIndex.from_arrays([table["frame"].to_numpy(), table["marker"].to_numpy()])
+                hit = (table["view"] == v).to_numpy() & at.isin(cells) & (table["status"] == "found").to_numpy()
+                table.loc[hit, "status"] = "partly-hidden"
     points3d = fit.points.copy()
     if time_unit == "frame":
         points3d["time_s"] = np.nan
