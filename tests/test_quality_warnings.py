@@ -329,3 +329,19 @@ def test_track_warns_when_the_calibration_no_longer_fits(twin, tmp_path):
     res = json.loads((tmp_path / "out" / "track.json").read_text())
     w = [w for w in res["warnings"] if w["code"] == "calibration-mismatch"]
     assert len(w) == 1 and w[0]["reprojection_rms_px"] > 1.5 * w[0]["expected_px"], res["warnings"]
+
+
+def test_track_seeds_clicked_off_alike_are_no_jolt(twin, tmp_path):
+    """Every seed clicked 3 px to the right (and 1 px down): the frame-shift test had taken the
+    clicks for frame 0's predictions and called the picture jolted by 3 px in frame 0 (a
+    frame-shifts warning, the positions said to carry it).  Seeds are refined, not measured."""
+    seeds = pd.read_csv(twin / "synth/seeds.csv")
+    seeds["x_px"] += 3.0
+    seeds["y_px"] += 1.0
+    seeds.to_csv(tmp_path / "seeds.csv", index=False)
+    r = _invoke("track", "--view", f"cam1={twin / 'synth/sequence/cam1'}", "--view",
+                f"cam2={twin / 'synth/sequence/cam2'}", "--calibration", twin / "calibrate/calibration.json",
+                "--seeds", tmp_path / "seeds.csv", "--fps", "0.5", "-o", tmp_path / "out")
+    res = json.loads((tmp_path / "out" / "track.json").read_text())
+    assert not [e for e in res["events"] if e["kind"] == "frame-shift"]
+    assert res["warnings"] == [], res["warnings"]

@@ -537,7 +537,9 @@ def _frame_shift(img, f: int, live: list[_Marker], pred, match, cxy, whole, diam
     markers' candidates within ``max_gate_px`` of its prediction (that look like it) votes with
     its offset from the prediction; the offset most markers agree on (within ``max(1, d/4)``)
     wins if at least 3 markers and half of them agree, and it is the median of their offsets."""
-    recent = np.array([f - m.frame == 1 for m in live])
+    # markers measured in the frame before: a seed is a click, not a measurement (seeds clicked
+    # 3 px off, all alike, had been taken for the picture jolting in frame 0)
+    recent = np.array([f - m.frame == 1 and m.n_meas > 0 for m in live])
     if recent.sum() < 3:
         return None
     hit = recent & (match >= 0)
