@@ -42,8 +42,15 @@ Warnings (``registration.json`` ``warnings``, also logged; codes):
     had moved by then (more than :data:`NOISE_FACTOR` times the tracking noise) from where
     they were first found: markers_ct.csv's displacements, from the registration frame, miss
     that motion (``--frame`` of the first frame, where three references are found there).
-``head-motion``, ``tre-not-estimated``
-    The references move together over the trial; no degrees of freedom left for the FLE.
+``head-motion``
+    The references move together over the trial (more than 5 times their tracking noise):
+    the head moved relative to the C-arms.  Every frame with three references or more is
+    brought back onto the skull (:func:`_skull_fixed`: the references' rigid motion from the
+    registration frame taken out of all its markers; ``markers_ct.csv`` column
+    ``head_motion_mm``, ``skull_motion.compensation`` with the references' RMS motion before
+    and after); frames with fewer are listed and left as they were.
+``tre-not-estimated``
+    No degrees of freedom left for the FLE.
 """
 
 from __future__ import annotations
@@ -251,6 +258,8 @@ def markers_to_ct(tracks: pd.DataFrame, T, frame: int, roles: dict[str, str],
                         "dx_mm": d[:, 0], "dy_mm": d[:, 1], "dz_mm": d[:, 2],
                         "role": [roles.get(m, "marker") for m in tracks["marker"]],
                         "coordinate_system": coordinate_system or "unstated"})
+    if "head_motion_mm" in tracks:      # the head's motion taken out of the frame (:func:`_skull_fixed`)
+        out["head_motion_mm"] = tracks["head_motion_mm"].to_numpy(float)
     return out.sort_values(["frame", "marker"], kind="stable").reset_index(drop=True)
 
 
@@ -476,6 +485,45 @@ def _reference_effect_warnings(report, *, has_check: bool) -> list[dict]:
     return out
 
 
+def _skull_fixed(tracks: pd.DataFrame, frames: np.ndarray, refs: np.ndarray, fi: int) -> tuple[pd.DataFrame, dict]:
+    """Every frame's X-ray positions moved back onto the skull: in each frame with at least
+    three of the references ``refs`` (F, N, 3) found, the rigid transform taking them onto
+    their registration-frame positions (frame index ``fi``) is applied to every marker of that
+    frame.  Returns the moved table (a copy, column ``head_motion_mm``: how far the transform
+    moved the references' centroid, NaN where not compensated) and a report: the references'
+    RMS distance from their registration-frame positions before and after, and the frames
+    left as they were."""
+    from ..geometry.registration import fit_similarity
+    out = tracks.copy()
+    out["head_motion_mm"] = np.nan
+    ref = refs[fi]
+    before, after, left = [], [], []
+    xyz = out[["x_mm", "y_mm", "z_mm"]].to_numpy(float, copy=True)
+    for k, f in enumerate(frames):
+        ok = np.isfinite(refs[k]).all(axis=1) & np.isfinite(ref).all(axis=1)
+        if ok.sum() < 3:
+            left.append(int(f))
+            continue
+        try:
+            M = fit_similarity(refs[k][ok], ref[ok])
+        except ValueError:          # the references found in this frame lie on a line
+            left.append(int(f))
+            continue
+        before.extend(np.linalg.norm(refs[k][ok] - ref[ok], axis=1) ** 2)
+        after.extend(np.linalg.norm(M.apply(refs[k][ok]) - ref[ok], axis=1) ** 2)
+        rows = (out["frame"] == f).to_numpy()
+        xyz[rows] = M.apply(xyz[rows])
+        c = refs[k][ok].mean(axis=0)
+        out.loc[rows, "head_motion_mm"] = float(np.linalg.norm(M.apply(c) - c))
+    out[["x_mm", "y_mm", "z_mm"]] = xyz
+    report = {"method": "per frame, the rigid transform taking the used references onto their registration-frame "
+                        "positions, applied to every marker of that frame (markers_ct.csv column head_motion_mm)",
+              "reference_rms_mm_before": float(np.sqrt(np.mean(before))) if before else None,
+              "reference_rms_mm_after": float(np.sqrt(np.mean(after))) if after else None,
+              "n_frames_compensated": int(len(frames) - len(left)), "frames_not_compensated": left}
+    return out, report
+
+
 def _noise_ceiling(noise: dict) -> float:
     """The loop's noise ceiling (mm, per coordinate) from the references' tracking noise
     (:func:`~bsipipe.geometry.registration.tracking_noise`; none measured: CT alone)."""
@@ -614,13 +662,23 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
     skull["note"] = ("rigid motion of the used references as a whole relative to the registration frame; the "
                      "declared model has the head fixed relative to the C-arms (one transform for every frame)")
     sigmas = [m["sigma_mm"] for m in (data.motion(n) for n in used) if m and np.isfinite(m["sigma_mm"])]
+    head = None
     if sigmas and skull["max_translation_mm"] > 5 * np.median(sigmas):
+        # the head moved relative to the C-arms: each frame is brought back onto the skull
+        # (the used references' rigid motion from the registration frame taken out), so the
+        # displacements are the tissue's relative to the skull, as the FE model's are
+        tracks, head = _skull_fixed(tracks, frames, pos[:, fit.used], fi)
         warnings.append(warning(
             "head-motion", f"register: the references move together by up to {skull['max_translation_mm']:.3g} mm "
                            f"(frame {int(frames[skull['frame_of_max']])}): the head moved relative to the C-arms; "
-                           f"one transform does not serve every frame", log,
-            max_translation_mm=skull["max_translation_mm"]))
+                           f"each frame was brought back onto the skull by the references' own rigid motion "
+                           f"(references' RMS motion {head['reference_rms_mm_before']:.3g} -> "
+                           f"{head['reference_rms_mm_after']:.3g} mm; {len(head['frames_not_compensated'])} frame(s) "
+                           f"with fewer than 3 references left as they were)", log,
+            max_translation_mm=skull["max_translation_mm"], compensated=True,
+            frames_not_compensated=head["frames_not_compensated"]))
     skull["frame_of_max"] = int(frames[skull["frame_of_max"]])
+    skull["compensation"] = head
 
     # A tracked point the CT does not hold (e.g. a bead on the indentor) is "xray-only"; an
     # implanted marker the CT file lists without a position (Slicer: undefined or missing) is
