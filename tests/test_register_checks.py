@@ -281,6 +281,21 @@ def test_nearly_collinear_references_warn(tmp_path):
     assert w["line_ratio"] < 0.05
 
 
+def test_references_on_one_line_within_the_noise_are_invalid_input(tmp_path):
+    """R3, R4 within 0.01 mm of the line R1-R2 (the tracking noise is 0.0087 mm 3-D): the
+    rotation about the line is the noise's.  A lateral spread of 0.02 mm at 0.017 mm of noise
+    had registered with the rotation 10.5 degrees off, a moved reference "found" and exit 0."""
+    def line(X):
+        d = X[1] - X[0]
+        X[2] = X[0] + 0.5 * d + [0.0, 0.006, 0.0]
+        X[3] = X[0] + 2.0 * d + [0.0, -0.004, 0.003]
+        return X
+    _trial(tmp_path, xray_edit=line)
+    r, _ = _register(tmp_path, REFS4)
+    assert r.exit_code == 2 and "lie on one line within their tracking noise" in r.output, r.output
+    assert "markers3d.csv" in r.output and not (tmp_path / "out").exists()
+
+
 def test_three_references_one_moved_warn_of_a_large_fre(tmp_path):
     def edit(ct):
         ct["R2"] = ct["R2"] + [1.0, 0.6, -0.3]

@@ -83,6 +83,10 @@ CHECK_FLOOR_MM = 0.5
 #: of squares is the loop's noise ceiling (per coordinate, over sqrt 3); a FRE above it is not
 #: noise, however few references there are to show a pattern (four: twelve numbers).
 CT_FLE_MAX_MM = 0.5
+#: References whose X-ray lateral spread (off their best line) is under this many times their
+#: 3-D tracking noise lie on one line as far as the data can tell: exit 2 (a spread of 0.02 mm
+#: at 0.017 mm of noise had registered with a rotation 10.5 degrees off, exit 0).
+LINE_NOISE_FACTOR = 5.0
 #: Lateral spread of the references over their length (``line_ratio`` of
 #: :func:`~bsipipe.geometry.registration.point_configuration`) below which they are nearly collinear.
 LINE_RATIO_MIN = 0.1
@@ -594,6 +598,13 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
     y_refs = np.array([ct_pos[r] for r in found])
     conf = _check_configuration(y_refs, path=ct, names=found, what="CT")
     conf_x = _check_configuration(pos[fi], path=xray, frame=F, names=found, what="X-ray")
+    ref_noise = reg.tracking_noise(pos)
+    noise_line = LINE_NOISE_FACTOR * math.sqrt(3.0) * ref_noise["sigma_mm"]
+    if math.isfinite(noise_line) and conf_x["lateral_mm"] < noise_line:
+        raise InputError(f"the X-ray positions of the references {', '.join(found)} lie on one line within their "
+                         f"tracking noise (lateral spread {conf_x['lateral_mm']:.2g} mm over {conf_x['spread_mm']:.3g} "
+                         f"mm, under {LINE_NOISE_FACTOR:g} x their 3-D noise, {noise_line:.2g} mm): a rotation about "
+                         "the line is undetermined; use references that span a plane", path=xray, frame=F)
     worst = min((conf, "CT"), (conf_x, "X-ray"), key=lambda c: c[0]["line_ratio"])
     if worst[0]["line_ratio"] < LINE_RATIO_MIN:
         c = worst[0]
@@ -617,7 +628,7 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
                             check_x_mm=np.array([targets[n] for n in c_names]).reshape(-1, 3),
                             check_y_mm=np.array([ct_pos[n] for n in c_names]).reshape(-1, 3))
     spec0 = RegistrationSpec(scale=cfg.scale)
-    ceiling = _noise_ceiling(reg.tracking_noise(pos))
+    ceiling = _noise_ceiling(ref_noise)
     try:
         report = close_registration_loop(data, spec0, loop=cfg.loop, noise_ceiling=ceiling)
     except ValueError as e:
