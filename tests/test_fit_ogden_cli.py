@@ -481,3 +481,28 @@ def test_a_contact_the_fit_moves_far_from_the_detector_is_a_warning(tmp_path):
     assert moved and all(abs(w["shift_sd"]) > 10 for w in moved)
     assert max(abs(i["contact_shift_sd"]) for i in swapped["inputs"]) > 10
     assert "moved" in swapped["inputs"][1]["contact_refinement"]
+
+
+def test_a_declared_boundary_the_width_series_contradicts_is_a_warning(tmp_path):
+    """A frictionless record (homogeneous: width D / sqrt(stretch)) declared --boundary no-slip
+    with its width series: the loop weighs no-slip-platens only where the boundary is not
+    declared, so the width was read and ignored (mu 527 Pa against 720, a spurious compliance,
+    fit.json the same as without it).  The width's evidence is now weighed against the
+    declaration (boundary_check) and a contradiction is a warning; the right declaration
+    gets none."""
+    frame, truth = synth_compression_log(seed=35, rate_hz=5.0)
+    path = write_bluehill2(frame, tmp_path / "f.csv", label="S8", geometry={"diameter_mm": 18.0, "height_mm": 12.0})
+    t = np.arange(0.0, float(frame["time_s"].iloc[-1]), 2.0)
+    disp = np.interp(t, frame["time_s"], frame["extension_mm"].abs())
+    lam = 1.0 - np.maximum(disp - truth["contact_mm"], 0.0) / 12.0
+    pd.DataFrame({"time_s": t, "width_mm": 18.0 / np.sqrt(lam)}).to_csv(tmp_path / "w.csv", index=False)
+    out = {}
+    for b in ("no-slip", "frictionless"):
+        r = _invoke("fit-ogden", path, "--boundary", b, "--width-csv", tmp_path / "w.csv", "--no-loop",
+                    "--bootstrap", "0", "-o", tmp_path / b)
+        assert r.exit_code == 0, r.output
+        out[b] = json.loads((tmp_path / b / "fit.json").read_text())
+    w = [x for x in out["no-slip"]["warnings"] if x["code"] == "boundary-contradicted"]
+    assert len(w) == 1 and w[0]["delta_bic"] < -10 and "--boundary frictionless" in w[0]["message"]
+    assert out["frictionless"]["boundary_check"]["delta_bic"] < -10
+    assert "boundary-contradicted" not in [x["code"] for x in out["frictionless"]["warnings"]]

@@ -459,6 +459,42 @@ def _spikes_left_out(input_info: list[dict]) -> list[dict]:
     return out
 
 
+def _declared_boundary_check(final, data, width, width_csv) -> dict | None:
+    """A declared ``--boundary`` weighed against the ``--width-csv`` series (the loop tries
+    ``no-slip-platens`` only where the boundary is not declared): the width's evidence for
+    bonded platens (:func:`bsipipe.mechanics.effects.width_evidence`, both shapes from the
+    final fit's stretch), and a ``boundary-contradicted`` warning where it says the other
+    boundary with delta BIC over 10.  A frictionless record declared no-slip, its width
+    exactly D / sqrt(stretch), had given mu 527 Pa (truth 720) and a spurious compliance
+    without a word."""
+    from types import SimpleNamespace
+
+    from ..mechanics.effects import width_evidence
+    from ..quality import warning
+    st = SimpleNamespace(fit=final, spec=final.spec)
+    try:
+        ev = width_evidence(width, data)(st, st)
+    except (ValueError, KeyError, ArithmeticError):
+        return None
+    if ev is None:
+        return None
+    declared = final.spec.boundary
+    out = {"evidence": {**ev, "declared": declared,
+                        "note": "delta BIC > 0 favours bonded (no-slip) platens, < 0 a homogeneous (frictionless) "
+                                "compression"}}
+    d = ev["delta_bic"]
+    other = "frictionless" if declared == "no-slip" else "no-slip"
+    if (declared == "no-slip" and d < -10) or (declared != "no-slip" and d > 10):
+        out["warning"] = warning(
+            "boundary-contradicted",
+            f"fit-ogden: the width series {Path(str(width_csv)).name} contradicts --boundary {declared}: it fits the "
+            f"{other} shape (width RMSE {ev['rmse_width_homogeneous_mm']:.3g} mm homogeneous, "
+            f"{ev['rmse_width_no_slip_mm']:.3g} mm barrelled; delta BIC {d:.1f}); the parameters assume "
+            f"{declared}: refit with --boundary {other}, or leave --boundary out and let the loop weigh it",
+            log, delta_bic=d, declared=declared)
+    return out
+
+
 def _contacts_moved(input_info: list[dict]) -> list[dict]:
     """``contact-moved`` warnings: a fit that moved a detected contact more than
     :data:`CONTACT_MOVED_SD` of the detector's standard deviations (the data and the detector
@@ -638,6 +674,8 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
         if not final.success:
             raise ProcessingError(f"the {final.spec.describe()} fit did not converge: {final.message}",
                                   path=paths[0])
+        boundary_said = (_declared_boundary_check(final, data, width, width_csv)
+                         if width is not None and "boundary" in explicit and kind == "logs" else None)
         if cfg.bootstrap:
             # one refit per resample: seconds on a short log, many minutes on a long record with
             # a Prony series and compliance; a bar on a terminal says where it is
@@ -699,6 +737,10 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
     result["warnings"] = _fit_quality(final)
     if kind == "logs":
         result["warnings"] += _spikes_left_out(input_info) + _contacts_moved(input_info)
+        if boundary_said is not None:
+            result["boundary_check"] = boundary_said["evidence"]
+            if boundary_said.get("warning"):
+                result["warnings"].append(boundary_said["warning"])
     else:
         result["warnings"] += _stress_sign_turned(input_info)
     if kind == "logs" and not spec.baseline_drift:
