@@ -506,3 +506,25 @@ def test_a_declared_boundary_the_width_series_contradicts_is_a_warning(tmp_path)
     assert len(w) == 1 and w[0]["delta_bic"] < -10 and "--boundary frictionless" in w[0]["message"]
     assert out["frictionless"]["boundary_check"]["delta_bic"] < -10
     assert "boundary-contradicted" not in [x["code"] for x in out["frictionless"]["warnings"]]
+
+
+@pytest.mark.parametrize("case", ["five-rows", "extension-constant", "table-two-rows"])
+def test_records_that_cannot_be_fitted_are_bad_input(tmp_path, case):
+    """A log of 5 samples, a log whose extension never moves, a table of 2 rows for a
+    2-parameter law: input that cannot be fitted, which had been exit 1 (a processing
+    failure, "the fit failed")."""
+    if case == "table-two-rows":
+        p = tmp_path / "t.csv"
+        p.write_text("stretch,nominal_stress_pa\n1,0\n0.9,-292.8\n")
+        args = [p, "--stress-stretch"]
+    else:
+        frame, _ = synth_compression_log(seed=36)
+        if case == "five-rows":
+            frame = frame.iloc[:5]
+        else:
+            frame["extension_mm"] = 0.0
+        p = write_bluehill2(frame, tmp_path / "log.csv", label="S9", geometry={"diameter_mm": 18.0, "height_mm": 12.0})
+        args = [p]
+    r = _invoke("fit-ogden", *args, "--no-loop", "--bootstrap", "0", "-o", tmp_path / "out")
+    assert r.exit_code == 2 and p.name in r.output, r.output
+    assert not (tmp_path / "out").exists()

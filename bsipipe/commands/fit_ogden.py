@@ -196,7 +196,7 @@ MAX_SPIKES = 5
 
 def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig):
     from ..io.machine_log import read_machine_log
-    from ..mechanics.contact import ContactNotInRecord, detect_contact, loading_ramps
+    from ..mechanics.contact import ContactNotInRecord, NoLoadingRamp, detect_contact, loading_ramps
     from ..mechanics.fit import MIN_UNLOADED_SAMPLES, LogData
 
     logs, inputs = [], []
@@ -245,6 +245,8 @@ def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig):
                     f"contact detection: {e.message}: give it with --contact-mm D (config key contact_mm), the "
                     f"displacement in mm past the first sample, positive in compression, at which the platen "
                     f"touched (negative: before the record began)", path=p) from None
+            except NoLoadingRamp as e:      # the record cannot hold a contact: bad input
+                raise InputError(f"contact detection: {e.message}", path=p) from None
             except ProcessingError as e:
                 raise ProcessingError(f"contact detection: {e.message}", path=p) from None
             except ValueError as e:
@@ -625,7 +627,7 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
         No contact in a log, a fit that does not converge, parameters no FE card can hold (exit 1).
     """
     from ..mechanics.effects import baseline_measurable
-    from ..mechanics.fit import ForceModelSpec, add_bootstrap
+    from ..mechanics.fit import ForceModelSpec, TooFewRows, add_bootstrap
     from ..provenance import ResultSet, provenance
     from ..report.fit_figure import fit_figure
 
@@ -687,6 +689,8 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
                                            progress=bar.update)
         else:
             final_boot = final
+    except TooFewRows as e:             # the table cannot determine the model: bad input
+        raise InputError(f"{e}: give more rows or a model with fewer parameters", path=paths[0]) from None
     except (ArithmeticError, ValueError, np.linalg.LinAlgError) as e:
         raise ProcessingError(f"the fit failed: {e}", path=paths[0]) from None
     changed = bool(loop_dict.get("steps"))

@@ -70,6 +70,11 @@ class ContactNotInRecord(ProcessingError):
     so it cannot be detected and must be given (``bsipipe fit-ogden --contact-mm``)."""
 
 
+class NoLoadingRamp(ProcessingError):
+    """The record cannot hold a contact point: too few samples, or a displacement that does not
+    increase at its start (bad input to ``bsipipe fit-ogden``: exit 2 there)."""
+
+
 @dataclass(frozen=True)
 class Contact:
     """The contact point of a compression ramp.
@@ -137,12 +142,12 @@ def detect_contact(time_s, displacement_mm, force_n) -> Contact:
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(d)) and np.all(np.isfinite(f))):
         raise ValueError("time_s, displacement_mm and force_n must be finite")
     if t.size < 20:
-        raise ProcessingError(f"too few samples ({t.size}) to find the contact point; need 20")
+        raise NoLoadingRamp(f"too few samples ({t.size}) to find the contact point; need 20")
 
     n = _loading_end(d)
     if n < 20 or d[n - 1] <= d[0]:
-        raise ProcessingError("the displacement does not increase at the start of the record: "
-                              "no loading ramp to find the contact point on")
+        raise NoLoadingRamp("the displacement does not increase at the start of the record: "
+                            "no loading ramp to find the contact point on")
     d, f, t = d[:n], f[:n], t[:n]
 
     n_early = max(10, n // 10)

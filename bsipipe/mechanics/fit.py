@@ -1265,6 +1265,10 @@ def fit_logs(logs: Sequence[LogData], spec: ForceModelSpec = ForceModelSpec(), *
     return _solve(problem, starts, seed=seed, bootstrap=bootstrap)
 
 
+class TooFewRows(ValueError):
+    """A stress-stretch table with no more rows than the model has parameters."""
+
+
 def fit_tables(tables, law: str = "ogden", *, seed: int = 0, bootstrap: int = 0) -> FitResult:
     """Fit a law jointly to stress-stretch tables of one or several loading modes.
 
@@ -1291,7 +1295,7 @@ def fit_tables(tables, law: str = "ogden", *, seed: int = 0, bootstrap: int = 0)
         raise ValueError(f"unknown loading modes {sorted(bad)}; expected {MODES}")
     problem = _TableProblem(table, law)
     if problem.n_obs <= len(problem.pars):
-        raise ValueError(f"{problem.n_obs} table rows to fit but the model has {len(problem.pars)} parameters")
+        raise TooFewRows(f"{problem.n_obs} table rows to fit but the model has {len(problem.pars)} parameters")
     return _solve(problem, problem.global_starts(), seed=seed, bootstrap=bootstrap)
 
 
