@@ -528,3 +528,17 @@ def test_records_that_cannot_be_fitted_are_bad_input(tmp_path, case):
     r = _invoke("fit-ogden", *args, "--no-loop", "--bootstrap", "0", "-o", tmp_path / "out")
     assert r.exit_code == 2 and p.name in r.output, r.output
     assert not (tmp_path / "out").exists()
+
+
+def test_a_fit_whose_modulus_runs_to_zero_is_a_failure(tmp_path):
+    """An untared load cell 2.5 N off on a test of about 0.5 N, fitted with --no-loop (the loop
+    would fit the offset): mu had come out at 6.7e-14 Pa with exit 0 and material cards
+    written, the reason only in the warnings.  It is exit 1 with that reason."""
+    frame, _ = synth_compression_log(seed=37, baseline_n=-2.5)
+    p = write_bluehill2(frame, tmp_path / "off.csv", label="S10", geometry={"diameter_mm": 18.0, "height_mm": 12.0})
+    r = _invoke("fit-ogden", p, "--no-loop", "--bootstrap", "0", "-o", tmp_path / "out")
+    assert r.exit_code == 1 and "ran every modulus to zero" in r.output and "off.csv" in r.output, r.output
+    assert "unloaded force of -2.5 N" in r.output and not (tmp_path / "out").exists()
+    r = _invoke("fit-ogden", p, "--bootstrap", "0", "-o", tmp_path / "loop")      # the loop fits the offset
+    assert r.exit_code == 0, r.output
+    assert abs(json.loads((tmp_path / "loop" / "fit.json").read_text())["params"]["mu_pa"] / 720 - 1) < 0.05

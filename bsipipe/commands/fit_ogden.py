@@ -461,6 +461,24 @@ def _spikes_left_out(input_info: list[dict]) -> list[dict]:
     return out
 
 
+#: A fitted shear modulus below this (Pa) is no modulus: the fit ran to its bound.
+MIN_MODULUS_PA = 1e-6
+
+
+def _no_modulus(params: dict, warnings: list[dict], path) -> None:
+    """A fit whose every Ogden (or neo-Hookean, Mooney-Rivlin) modulus ran to zero is a failed
+    fit (exit 1), not a material card: an untared 2.5 N load-cell offset with --no-loop had
+    written mu = 6.7e-14 Pa with exit 0 (its warnings said why; they are the message now)."""
+    import re
+    mus = [float(v) for k, v in params.items() if re.fullmatch(r"(mu\d*|c\d+)_pa", k) and isinstance(v, (int, float))]
+    if mus and max(abs(m) for m in mus) < MIN_MODULUS_PA:
+        why = "; ".join(w["message"] for w in warnings if w["code"] not in ("parameter-undetermined",
+                                                                           "interval-spans-zero",
+                                                                           "parameter-correlation"))
+        raise ProcessingError(f"the fit ran every modulus to zero ({', '.join(f'{m:.3g}' for m in mus)} Pa): the "
+                              "force is not the law's at these settings" + (f"; {why}" if why else ""), path=path)
+
+
 def _declared_boundary_check(final, data, width, width_csv) -> dict | None:
     """A declared ``--boundary`` weighed against the ``--width-csv`` series (the loop tries
     ``no-slip-platens`` only where the boundary is not declared): the width's evidence for
@@ -751,6 +769,7 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
         result["warnings"] += _baseline_ignored(input_info, data)
     if kind == "logs" and spec.compliance:
         result["warnings"] += _compliance_implausible(final.values.get("compliance_mm_per_n", 0.0), data)
+    _no_modulus(final.params, result["warnings"], paths[0])
     prov_inputs = paths + ([str(width_csv)] if width_csv is not None else []) + ([str(config)] if config else [])
     result["provenance"] = provenance(cfg, prov_inputs, command="fit-ogden")
 
