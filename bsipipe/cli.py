@@ -31,6 +31,11 @@ def _setup_logging(verbose: int, quiet: int) -> None:
     level = logging.INFO - 10 * verbose + 10 * quiet
     logging.basicConfig(level=max(level, logging.DEBUG), format="%(levelname)s %(name)s: %(message)s",
                         stream=sys.stderr, force=True)
+    # numpy's and pandas' RuntimeWarnings (an all-NaN slice in a frame where a marker is
+    # hidden, ...) are the code's business, not the user's: logged at DEBUG (-v shows them),
+    # not printed raw among the command's lines
+    logging.captureWarnings(True)
+    logging.getLogger("py.warnings").setLevel(logging.DEBUG if verbose else logging.ERROR)
 
 
 def handle_errors(fn):
