@@ -60,3 +60,13 @@ def test_xmalab_seeds_views_called_camN_match_by_name():
                         "y_px": [3.0, 4.0]})
     text = format_xmalab_2d(pts, ["cam2", "cam1"])
     assert text.splitlines()[:2] == ["A_cam1_X,A_cam1_Y,A_cam2_X,A_cam2_Y", "1,3,2,4"]
+
+
+@pytest.mark.parametrize("cell, said", [("", "x_px is empty"), ("abc", "x_px is not a number: 'abc'")])
+def test_a_seed_without_a_number_is_named_by_line(tmp_path, cell, said):
+    """An empty coordinate had been reported as "x_px is not a number: np.float64(nan)"."""
+    p = tmp_path / "seeds.csv"
+    p.write_text(f"view,marker,x_px,y_px\ncam1,M1,10,12\ncam1,M2,{cell},14\n")
+    with pytest.raises(InputError) as e:
+        read_seeds(p, ["cam1"])
+    assert e.value.line == 3 and str(e.value).endswith(said)

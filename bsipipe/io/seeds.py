@@ -79,7 +79,9 @@ def read_seeds(path, views: Sequence[str], frame_shapes: dict | None = None) -> 
         v = pd.to_numeric(df[c], errors="coerce")
         bad = np.flatnonzero(~np.isfinite(v.to_numpy(float)))
         if len(bad):
-            raise InputError(f"{c} is not a number: {df[c].iloc[bad[0]]!r}", path=path, line=int(bad[0]) + 2)
+            cell = df[c].iloc[bad[0]]
+            what = "is empty" if pd.isna(cell) or str(cell).strip() == "" else f"is not a number: {str(cell)!r}"
+            raise InputError(f"{c} {what}", path=path, line=int(bad[0]) + 2)
         df[c] = v.astype(float)
     for c in ("view", "marker"):
         if df[c].isna().any():
