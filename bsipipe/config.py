@@ -103,7 +103,7 @@ def validate(model: type[M], data: Any, source: str | os.PathLike | None = None)
         return model.model_validate(data)
     except ValidationError as err:
         key, msg = _format_validation_error(err)
-        raise InputError(msg, path=source, key=key) from None
+        raise InputError(msg, path=source, key=key or None) from None  # a whole-model check: no key
 
 
 def load_yaml(path: str | os.PathLike) -> Any:

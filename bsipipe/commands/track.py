@@ -1312,6 +1312,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     for v, p in cfg.views.items():
         if not (os.path.exists(p) or any(c in p for c in "*?[")):
             raise InputError(f"view {v}: no such file or folder", path=p)
+
     # each view's first frame, for the seeds' check, the polarity and the diameter (then let go)
     given_roi = _given_roi(cfg)
     firsts, blank_firsts = _first_frames(cfg.views, cfg.channel)
@@ -1392,12 +1393,13 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         if cfg.lowpass_hz is not None:
             rate = cfg.fps or (1.0 / np.nanmedian(np.diff(st["data"].ta)) if st["time_unit"] == "s" else None)
             if rate is None:
-                raise InputError("--lowpass-hz needs a frame rate (--fps or time stamps)", key="lowpass_hz")
+                raise InputError("--lowpass-hz needs a frame rate (--fps or time stamps)", path=config_path,
+                                 key="lowpass_hz")
             from ..imaging.triangulate import lowpass_trajectories
             try:
                 points3d = lowpass_trajectories(points3d, cfg.lowpass_hz, rate)
             except ValueError as e:
-                raise InputError(str(e), key="lowpass_hz") from None
+                raise InputError(str(e), path=config_path, key="lowpass_hz") from None
         warnings += _ray_gap_warnings(points3d, cfg.max_ray_gap_mm)
 
     rs = ResultSet(out, primary="track.json", outputs=TRACK_OUTPUTS)
