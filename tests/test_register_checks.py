@@ -344,16 +344,21 @@ def test_messages_for_a_short_row_and_two_references(tmp_path):
     assert not r.output.rstrip().endswith(":")
 
 
+def _references_only_swapped(a, b):
+    """``ct_edit``: the CT file holds the references only, with ``a`` and ``b`` exchanged."""
+    def edit(ct):
+        for n in NAMES[4:]:
+            del ct[n]
+        _swap(a, b)(ct)
+    return edit
+
+
 def test_swap_with_references_only_is_not_taken_for_a_mirrored_file(tmp_path):
     """Four references, no implanted marker: R1 <-> R3 exchanged across the square's diagonal is a
     mirror image of the true configuration (before: exit 2, "coordinates flipped").  The loop
     names the swap; nothing besides the references can rule out a moved reference, which a
     warning says."""
-    def edit(ct):
-        for n in NAMES[4:]:
-            del ct[n]
-        _swap("R1", "R3")(ct)
-    _trial(tmp_path, ct_edit=edit)
+    _trial(tmp_path, ct_edit=_references_only_swapped("R1", "R3"))
     r, res = _register(tmp_path)
     assert r.exit_code == 0, r.output
     assert [s["effect"] for s in res["loop"]["steps"]] == ["label-swap"]
@@ -371,11 +376,7 @@ def test_swap_along_a_side_with_references_only_is_given_back(tmp_path):
     the rotation 36 degrees off).  A FRE above what tracking noise and a CT voxel can give
     (the noise ceiling) is not noise: the candidates are weighed on the fit, and giving the
     labels back brings the FRE to the noise."""
-    def edit(ct):
-        for n in NAMES[4:]:
-            del ct[n]
-        _swap("R1", "R2")(ct)
-    _trial(tmp_path, ct_edit=edit)
+    _trial(tmp_path, ct_edit=_references_only_swapped("R1", "R2"))
     r, res = _register(tmp_path)
     assert r.exit_code == 0, r.output
     assert [s["effect"] for s in res["loop"]["steps"]] == ["label-swap"]

@@ -95,29 +95,41 @@ def read_registration(path):
 SAME_RUN_TOL_MM = 1.0
 
 
-def _same_run(reg: dict, reg_path, markers_ct: pd.DataFrame, markers_path) -> None:
-    """``markers_ct.csv`` and ``registration.json`` must come from one ``register`` run: the
-    references' rows at the registration frame lie where the registration put their CT
-    positions (within their FRE; :data:`SAME_RUN_TOL_MM`).  A registration.json written
-    before it recorded those positions is not checked."""
+def _reference_offsets(reg: dict, table: pd.DataFrame, mapping=None) -> dict[str, float] | None:
+    """Distance (mm) of each registration reference's row of ``table`` at the registration
+    frame (mapped by ``mapping``, X-ray to CT, where given) from its CT position in
+    ``registration.json`` (``reference_ct_mm``); None for a registration.json without them."""
     ref = reg.get("reference_ct_mm")
     frame = reg.get("frame")
     if not isinstance(ref, dict) or frame is None:
-        return
-    at = markers_ct[markers_ct["frame"] == frame].set_index("marker")
+        return None
+    at = table[table["frame"] == frame].set_index("marker")
     off = {}
     for name, xyz in ref.items():
         if name in at.index:
             p = at.loc[name, ["x_mm", "y_mm", "z_mm"]].to_numpy(float)
             if np.all(np.isfinite(p)):
+                p = p if mapping is None else mapping.apply(p[None])[0]
                 off[name] = float(np.linalg.norm(p - np.asarray(xyz, float)))
+    return off
+
+
+def _same_run(reg: dict, reg_path, markers_ct: pd.DataFrame, markers_path) -> None:
+    """``markers_ct.csv`` and ``registration.json`` must come from one ``register`` run: the
+    references' rows at the registration frame lie where the registration put their CT
+    positions (within their FRE; :data:`SAME_RUN_TOL_MM`).  A registration.json written
+    before it recorded those positions is not checked."""
+    off = _reference_offsets(reg, markers_ct)
+    if off is None:
+        return
     if not off:
-        raise InputError(f"holds none of the registration's references ({', '.join(ref)}) at its frame {frame}: "
-                         f"it and {reg_path} come from different register runs", path=markers_path)
+        raise InputError(f"holds none of the registration's references ({', '.join(reg['reference_ct_mm'])}) at "
+                         f"its frame {reg['frame']}: it and {reg_path} come from different register runs",
+                         path=markers_path)
     worst = max(off, key=off.get)
     if off[worst] > SAME_RUN_TOL_MM:
-        raise InputError(f"reference {worst} at the registration frame {frame} lies {off[worst]:.4g} mm from where "
-                         f"{reg_path} has it in CT (more than {SAME_RUN_TOL_MM:g} mm): the two files come from "
+        raise InputError(f"reference {worst} at the registration frame {reg['frame']} lies {off[worst]:.4g} mm from "
+                         f"where {reg_path} has it in CT (more than {SAME_RUN_TOL_MM:g} mm): the two files come from "
                          "different register runs", path=markers_path)
 
 
@@ -125,20 +137,10 @@ def _same_trial(reg: dict, reg_path, transform, tracks: pd.DataFrame, tracks_pat
     """``markers3d.csv`` must be the trial ``registration.json`` registered: its references at
     the registration frame, mapped by the registration, lie at their CT positions (within
     :data:`SAME_RUN_TOL_MM`; unchecked for a registration.json without them)."""
-    ref = reg.get("reference_ct_mm")
-    frame = reg.get("frame")
-    if not isinstance(ref, dict) or frame is None:
-        return
-    at = tracks[tracks["frame"] == frame].set_index("marker")
-    off = {}
-    for name, xyz in ref.items():
-        if name in at.index:
-            x = at.loc[name, ["x_mm", "y_mm", "z_mm"]].to_numpy(float)
-            if np.all(np.isfinite(x)):
-                off[name] = float(np.linalg.norm(transform.apply(x[None])[0] - np.asarray(xyz, float)))
+    off = _reference_offsets(reg, tracks, transform)
     if off and max(off.values()) > SAME_RUN_TOL_MM:
         worst = max(off, key=off.get)
-        raise InputError(f"reference {worst} at the registration frame {frame}, mapped by {reg_path}, lies "
+        raise InputError(f"reference {worst} at the registration frame {reg['frame']}, mapped by {reg_path}, lies "
                          f"{off[worst]:.4g} mm from its CT position there (more than {SAME_RUN_TOL_MM:g} mm): the "
                          "registration is of another trial", path=tracks_path)
 
