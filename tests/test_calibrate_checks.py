@@ -333,9 +333,9 @@ def test_calibration_loop_doc_states_the_rule_it_applies():
 
 def test_views_that_do_not_determine_the_focal_length_are_a_failure(tmp_path):
     """Ten views of the board nearly parallel to each other (tilts within 0.5 degrees, one
-    distance) by a C-arm-like narrow field (f 3,300 px): f trades with the distance.  The probe's 1024 px set had given fx 1,862 px
-    against a true 3,300 with exit 0 (the fit's own std 0.17 px; only a weak-intrinsics
-    warning).  It is exit 1 naming the spread; the usual tilted views calibrate."""
+    distance) by a C-arm-like narrow field (f 3,300 px): f trades with the distance.  The
+    probe's 1024 px set had given fx 1,862 px against a true 3,300 with exit 0 (the fit's own
+    std 0.17 px; only a weak-intrinsics warning).  It is exit 1 naming the spread."""
     tex = _board_texture(9, 6, 20.0)
     rng = np.random.default_rng(5)
     d = tmp_path / "flat"

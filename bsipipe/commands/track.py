@@ -966,7 +966,8 @@ def _sequence_warnings(table: pd.DataFrame, events: list[dict], cfg, views, info
             f"track: seeded markers found in fewer than {100 * RARELY_FOUND:.0f} % of their view's frames ("
             + "; ".join(f"{v}: " + ", ".join(f"{m} {k} of {n}" for m, (k, n) in ms.items()) for v, ms in rare.items())
             + "): too faint for the noise, or hidden; their tracks and 3-D points are mostly missing and what was "
-              "found may be noise: look at the frames (a config's detection.window_k_sigma lowers the search threshold)",
+              "found may be noise: look at the frames (a config's detection.window_k_sigma lowers the search "
+              "threshold)",
             log, markers={v: {m: {"found": k, "frames": n} for m, (k, n) in ms.items()} for v, ms in rare.items()}))
     counts = {v: info[v]["n_frames"] for v in views}
     last = {v: int(table.loc[table["view"] == v, "frame"].max()) for v in views}
