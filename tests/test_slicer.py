@@ -148,6 +148,10 @@ def test_plain_csv(tmp_path):
     ("g.csv", "marker,x_mm,y_mm\nR1,1,2\n", 1, "z_mm"),
     ("h.csv", "marker,x_mm,y_mm,z_mm\nR1,1,2,3\nR2,1,nan,3\n", 3, "y_mm is not finite"),
     ("i.csv", "marker,x_mm,y_mm,z_mm\n,1,2,3\n", 2, "empty label"),
+    # a label in two markups lists: each named by its own line (both had been "line 3 ... (also line 3)")
+    ("j.mrk.json", '{"markups": [\n  {"controlPoints": [\n    {"label": "R1", "position": [1, 2, 3]}]},\n'
+                   '  {"controlPoints": [\n    {"label": "R1", "position": [4, 5, 6]}]}]}', 5,
+     "appears twice (also line 3)"),
 ])
 def test_bad_files_name_file_and_line(tmp_path, name, text, line, what):
     p = tmp_path / name

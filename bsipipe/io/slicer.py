@@ -320,10 +320,14 @@ def read_fcsv(path) -> MarkupPoints:
     return pts.result("fcsv", system or "RAS", version)
 
 
-def _json_line(text: str, needle: str) -> int | None:
-    """1-based line of the first occurrence of ``needle`` (for messages), or None."""
-    i = text.find(needle)
-    return None if i < 0 else text.count("\n", 0, i) + 1
+def _json_line(text: str, needle: str, nth: int = 0) -> int | None:
+    """1-based line of the ``nth`` occurrence (0: the first) of ``needle`` (for messages), or None."""
+    i = -1
+    for _ in range(nth + 1):
+        i = text.find(needle, i + 1)
+        if i < 0:
+            return None
+    return text.count("\n", 0, i) + 1
 
 
 def read_mrk_json(path) -> MarkupPoints:
@@ -340,6 +344,7 @@ def read_mrk_json(path) -> MarkupPoints:
         raise InputError("not a markups file: expected a top-level 'markups' list", path=path, key="markups")
     pts = _Points(path)
     system = None
+    seen: dict[str, int] = {}       # label -> how many times met so far (its line: that occurrence's)
     for m, node in enumerate(doc["markups"]):
         key = f"markups[{m}]"
         if not isinstance(node, dict):
@@ -363,7 +368,8 @@ def read_mrk_json(path) -> MarkupPoints:
             if not isinstance(cp, dict):
                 raise InputError("expected an object", path=path, key=ck)
             label = str(cp.get("label", ""))
-            line = _json_line(text, json.dumps(label)) if label else None
+            line = _json_line(text, json.dumps(label), seen.get(label, 0)) if label else None
+            seen[label] = seen.get(label, 0) + 1
             status = str(cp.get("positionStatus", "defined"))
             if status in ("undefined", "missing"):
                 pts.skip(label, f"position {status} ({ck})", line)
