@@ -345,3 +345,14 @@ def test_track_seeds_clicked_off_alike_are_no_jolt(twin, tmp_path):
     res = json.loads((tmp_path / "out" / "track.json").read_text())
     assert not [e for e in res["events"] if e["kind"] == "frame-shift"]
     assert res["warnings"] == [], res["warnings"]
+
+
+def test_track_output_inside_a_view_folder_is_exit_2(twin, tmp_path):
+    """-o inside a --view folder of frames: the run wrote overlay.png and track.png among the
+    frames, and the next run on that folder failed on them.  Exit 2 before anything is written."""
+    cam1 = tmp_path / "cam1"
+    shutil.copytree(twin / "synth/sequence/cam1", cam1)
+    before = sorted(p.name for p in cam1.iterdir())
+    r = CliRunner().invoke(cli, ["track", "--view", f"cam1={cam1}", "--fps", "0.5", "-o", str(cam1 / "out")])
+    assert r.exit_code == 2 and "inside view cam1's folder of frames" in r.output, r.output
+    assert sorted(p.name for p in cam1.iterdir()) == before

@@ -1313,6 +1313,10 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     for v, p in cfg.views.items():
         if not (os.path.exists(p) or any(c in p for c in "*?[")):
             raise InputError(f"view {v}: no such file or folder", path=p)
+        if os.path.isdir(p) and Path(out).resolve().is_relative_to(Path(p).resolve()):
+            # the figures (PNG) would be read as frames by the next run on that folder
+            raise InputError(f"the output folder {out} is inside view {v}'s folder of frames: its figures would be "
+                             "read as frames; write the results elsewhere", path=p)
 
     # each view's first frame, for the seeds' check, the polarity and the diameter (then let go)
     given_roi = _given_roi(cfg)
