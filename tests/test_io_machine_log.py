@@ -346,6 +346,14 @@ def test_a_compression_table_written_positive_is_turned_and_said(tmp_path):
     assert t.attrs["sign_turned"] == ["uniaxial"]
     mixed = "stretch,nominal_stress_pa\n1.0,0\n0.9,-5\n1.1,-3\n"       # rows disagree: left as written
     assert read_stress_table(_table(tmp_path, mixed, "mixed.csv")).attrs["sign_turned"] == []
+    # tension and compression written as magnitudes (every stress positive): had been fitted as
+    # written, mu 123 Pa, alpha +8.8, exit 0; the compression rows take the laws' sign
+    lam2 = np.r_[np.linspace(0.7, 1.0, 16), np.linspace(1.02, 1.3, 15)]
+    p2 = ogden_nominal_stress(lam2, [720.0], [-4.7])
+    text2 = "stretch,nominal_stress_pa\n" + "".join(f"{a:.4f},{abs(b):.6f}\n" for a, b in zip(lam2, p2))
+    t2 = read_stress_table(_table(tmp_path, text2, "magnitudes.csv"))
+    np.testing.assert_allclose(t2["nominal_stress_pa"], p2, atol=1e-6)
+    assert t2.attrs["sign_turned"] == ["uniaxial (compression rows: the table gives magnitudes)"]
 
 
 def test_results_table_of_two_specimens_leaves_a_differing_dimension_unknown(tmp_path):

@@ -539,11 +539,23 @@ def _stress_sign_turned(input_info: list[dict]) -> list[dict]:
     """``stress-sign`` warnings: a table that wrote its loaded rows with the sign opposite to the
     laws' (compression positive) is fitted with its sign turned, and said so."""
     from ..quality import warning
-    return [warning("stress-sign", f"fit-ogden: {Path(info['path']).name}: every loaded "
-                    f"{', '.join(info['stress_sign_turned'])} row has the stress's sign opposite to its strain's "
-                    "(compression written positive): fitted with the sign turned (tension positive, compression "
-                    "negative)", log, path=str(info["path"]), modes=info["stress_sign_turned"])
-            for info in input_info if info.get("stress_sign_turned")]
+    out = []
+    for info in input_info:
+        turned = info.get("stress_sign_turned") or []
+        whole = [m for m in turned if "(" not in m]
+        parts = [m for m in turned if "(" in m]
+        said = []
+        if whole:
+            said.append(f"every loaded {', '.join(whole)} row has the stress's sign opposite to its strain's "
+                        "(compression written positive): fitted with the sign turned")
+        if parts:
+            said.append(f"every stress of {', '.join(p.split(' (')[0] for p in parts)} is positive, in tension and "
+                        "compression alike (magnitudes): the compression rows fitted with the sign turned")
+        if said:
+            out.append(warning("stress-sign", f"fit-ogden: {Path(info['path']).name}: " + "; ".join(said)
+                               + " (tension positive, compression negative)", log, path=str(info["path"]),
+                               modes=turned))
+    return out
 
 
 def _baseline_ignored(input_info: list[dict], data) -> list[dict]:

@@ -147,7 +147,9 @@ def _stress_sign(stretch: np.ndarray, stress: np.ndarray, modes: np.ndarray) -> 
     """The stress with the sign the laws use -- positive in tension (stretch > 1, or gamma >
     0 in simple shear), negative in compression -- and the modes whose table wrote every
     loaded row with the other sign (compression positive, as many compression rigs and papers
-    do), which are turned.  A mode whose rows disagree among themselves is left as written.
+    do), which are turned; a mode with both tension and compression rows whose every stress
+    is positive gives magnitudes, and its compression rows are turned.  A mode whose rows
+    disagree among themselves otherwise is left as written.
 
     >>> _stress_sign(np.array([1.0, 0.9, 0.8]), np.array([0.0, 10.0, 25.0]), np.array(["uniaxial"] * 3))
     (array([  0., -10., -25.]), ['uniaxial'])
@@ -162,6 +164,13 @@ def _stress_sign(stretch: np.ndarray, stress: np.ndarray, modes: np.ndarray) -> 
         if loaded.any() and np.all(agree[loaded] < 0):
             out[rows] = 0.0 - stress[rows]            # (an unloaded 0 stays 0, not -0)
             turned.append(m)
+        elif m != "simple-shear" and (strain < 0).any() and (strain > 0).any() and np.all(stress[rows] >= 0) \
+                and np.all(agree[loaded & (strain < 0)] < 0) and (loaded & (strain < 0)).any():
+            # every stress positive, tension and compression alike: magnitudes (as a rig that
+            # reports |F| writes them); the compression rows take the laws' sign
+            idx = np.flatnonzero(rows)[strain < 0]
+            out[idx] = 0.0 - stress[idx]
+            turned.append(f"{m} (compression rows: the table gives magnitudes)")
     return out, turned
 
 
