@@ -436,3 +436,16 @@ def test_specimens_side_by_side_are_one_record_per_file(tmp_path):
     q.write_text("Time,Extension,Load,Load\n(s),(mm),(N),(N)\n" + "\n".join(
         f"{0.1 * k:.1f},{-0.01 * k:.3f},{-0.001 * k:.4f},{-0.001 * k:.4f}" for k in range(30)) + "\n")
     assert len(read_machine_log(q)) == 30
+
+
+def test_a_stress_strain_export_is_named_as_such(tmp_path):
+    """A Bluehill export of time, strain and stress only: the message had quoted its units row
+    '(s),(mm/mm),(MPa)' at line 2 as "the header"; it names the header's stress and strain
+    columns at line 1."""
+    p = tmp_path / "ss.csv"
+    p.write_text("Time,Compressive strain,Compressive stress\n(s),(mm/mm),(MPa)\n"
+                 + "".join(f"{0.01 * k:.2f},{0.001 * k:.4f},{1e-6 * k:.3g}\n" for k in range(30)))
+    with pytest.raises(InputError) as e:
+        read_machine_log(p)
+    assert e.value.line == 1 and "'Compressive strain', 'Compressive stress'" in str(e.value)
+    assert "--stress-stretch" in str(e.value)

@@ -478,6 +478,12 @@ def _column_units(path, names_row, roles, h, u, next_cells):
     return names, units, factors, units_row
 
 
+def _is_units_row(cells: list[str]) -> bool:
+    """Every non-empty cell a unit in parentheses, ``(s)``, ``(mm/mm)``: Bluehill's units row."""
+    full = [c for c in cells if c]
+    return bool(full) and all(re.fullmatch(r"\(.*\)", c) for c in full)
+
+
 def _raise_no_header(path: str, lines: list[str]):
     """No names row: say where the data starts without one, or that there is no table."""
     for i, line in enumerate(lines):
@@ -487,7 +493,20 @@ def _raise_no_header(path: str, lines: list[str]):
                 prev = i - 1
                 while prev >= 0 and not lines[prev].strip():
                     prev -= 1
+                if prev >= 0 and _is_units_row(_cells(lines[prev], delim)):
+                    # a units row: the names are the line above it
+                    up = prev - 1
+                    while up >= 0 and not lines[up].strip():
+                        up -= 1
+                    prev = up if up >= 0 else prev
                 if prev >= 0:
+                    names = [c for c in _cells(lines[prev], delim) if c]
+                    said = [c for c in names if re.search(r"stress|strain", c, re.I)]
+                    if said:
+                        raise InputError(f"the header names {', '.join(repr(c) for c in said)}: the file holds "
+                                         "stress and strain, not the extension and load fit-ogden fits a log by; "
+                                         "export Extension and Load, or give a table of stretch and nominal "
+                                         "stress with --stress-stretch", path=path, line=prev + 1)
                     raise InputError(f"the header before the data ({lines[prev].strip()!r}) does not "
                                      f"name time, extension and load columns (expected e.g. "
                                      f"Time,Extension,Load)", path=path, line=prev + 1)
