@@ -542,3 +542,30 @@ def test_a_fit_whose_modulus_runs_to_zero_is_a_failure(tmp_path):
     r = _invoke("fit-ogden", p, "--bootstrap", "0", "-o", tmp_path / "loop")      # the loop fits the offset
     assert r.exit_code == 0, r.output
     assert abs(json.loads((tmp_path / "loop" / "fit.json").read_text())["params"]["mu_pa"] / 720 - 1) < 0.05
+
+
+def test_a_record_tared_on_a_preloaded_specimen(tmp_path):
+    """The specimen pressed 0.22 mm before the record starts and the load cell zeroed there;
+    the contact given (-0.22 mm): the record had been fitted as if the cell read the whole
+    force (mu 648 Pa, alpha -5.15 with --no-loop; with the loop a contact moved to +0.22 mm
+    and mu 804 Pa [803, 806]), no warning.  A record that starts compressed yet reads no force
+    was zeroed there: the law's own force at the first sample is taken out (no parameter).
+    The same record left unzeroed is fitted as before."""
+    frame, truth = synth_compression_log(seed=38, gap_mm=0.3, rate_hz=20.0, noise_n=5e-4)
+    start = int(np.argmax(frame["extension_mm"].to_numpy() >= truth["contact_mm"] + 0.22))
+    cut = frame.iloc[start:].reset_index(drop=True)
+    cut["time_s"] -= cut["time_s"].iloc[0]
+    cut["extension_mm"] -= cut["extension_mm"].iloc[0]
+    geo = {"diameter_mm": 18.0, "height_mm": 12.0}
+    contact = truth["contact_mm"] - frame["extension_mm"].iloc[start]          # about -0.22 mm
+    for case in ("tared", "untared"):
+        rec = cut.copy()
+        if case == "tared":
+            rec["load_n"] -= rec["load_n"].iloc[0]
+        p = write_bluehill2(rec, tmp_path / f"{case}.csv", label="S11", geometry=geo)
+        r = _invoke("fit-ogden", p, "--contact-mm", f"{contact:.6f}", "--no-loop", "--bootstrap", "0",
+                    "-o", tmp_path / case)
+        assert r.exit_code == 0, r.output
+        d = json.loads((tmp_path / case / "fit.json").read_text())
+        assert abs(d["params"]["mu_pa"] / 720 - 1) < 0.02 and abs(d["params"]["alpha"] + 4.7) < 0.1, (case, d["params"])
+        assert ("zeroed at the first sample" in d["inputs"][0]["force_baseline"]["source"]) == (case == "tared")

@@ -237,6 +237,7 @@ def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig):
         else:
             record["fitted_part"] = "whole record"
         name = Path(p).stem
+        tared = False
         if given is None:
             try:
                 contact = detect_contact(time_s, disp, force)
@@ -267,6 +268,14 @@ def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig):
             if before.sum() >= MIN_UNLOADED_SAMPLES:
                 baseline = {"level_n": float(np.median(force[before])),
                             "source": f"median of the {int(before.sum())} samples before the given contact"}
+            elif given < disp[0] and _zeroed_loaded(force):
+                # the record starts compressed (the contact before it) yet reads no force: the
+                # cell was zeroed there, and the law's own force at the first sample is taken out
+                tared = True
+                baseline = {"level_n": 0.0,
+                            "source": "the record starts compressed (the given contact is before its first sample) "
+                                      "yet reads about 0 N: the load cell was zeroed at the first sample; the "
+                                      "model's force there is taken out of every sample (tared_at_start)"}
             else:
                 baseline = {"level_n": 0.0,
                             "source": "assumed 0 N (the load cell zeroed unloaded): the record has "
@@ -274,7 +283,7 @@ def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig):
         _check_travel(p, disp, contact_mm, geo, given is not None, geo_source, cfg.max_strain)
         speed = _loading_speed(time_s, disp, start)
         logs.append(LogData(name, time_s, disp, force, geo["diameter_mm"], geo["height_mm"],
-                            contact_mm, speed, sd, noise))
+                            contact_mm, speed, sd, noise, tared_at_start=tared))
         inputs.append({"path": str(p), "layout": ml.layout, "speed_mm_s": speed,
                        "contact_mm": contact_mm, "n_points": int(len(disp)), **record,
                        "diameter_mm": geo["diameter_mm"], "height_mm": geo["height_mm"],
@@ -282,6 +291,21 @@ def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig):
                        "sign_from": ml.dialect.get("sign_from"),
                        "specimen_label": ml.metadata.get("Specimen label")})
     return logs, inputs
+
+
+def _zeroed_loaded(force: np.ndarray, n: int = 10) -> bool:
+    """Whether a record that starts compressed reads about zero force at its start: a line
+    through its first ``n`` samples (the force already rising) meets the first sample within
+    3 of their scatter about it and 1 % of the record's force range.  A cell left unzeroed
+    reads the preload there (a 0.22 mm preload of an 18 x 12 mm brain cylinder: about 10 mN,
+    twenty times the noise)."""
+    head = np.asarray(force[:n], float)
+    if len(head) < 4:
+        return False
+    k = np.arange(len(head), dtype=float)
+    slope, level = np.polyfit(k, head, 1)
+    scatter = float(np.std(head - (level + slope * k), ddof=2))
+    return abs(level) <= 3.0 * max(scatter, 1e-12) and abs(level) <= 0.01 * float(np.ptp(force))
 
 
 def _read_tables(paths: Sequence[str], modes: Sequence[str], cfg: FitConfig):

@@ -205,6 +205,10 @@ class LogData:
     ``force_noise_n``): with them the fit refines the contact within that uncertainty (the
     module docstring's contact prior).  Without them (``None``) the contact is taken as known
     exactly and held, unless the spec frees it (``contact_offset``).
+
+    ``tared_at_start``: the load cell was zeroed at the first sample with the specimen already
+    compressed (a contact before the record): the model's force at the first sample is taken
+    out of every sample, as the cell took it out (no parameter: the law gives it).
     """
 
     name: str
@@ -217,6 +221,7 @@ class LogData:
     speed_mm_s: float | None = None
     contact_sd_mm: float | None = None
     force_noise_n: float | None = None
+    tared_at_start: bool = False
 
     def __post_init__(self):
         for k in ("time_s", "displacement_mm", "force_n"):
@@ -532,6 +537,10 @@ def _log_force(log_: LogData, spec: ForceModelSpec, law: Law, tissue, g, tau, of
     stress = _stress_function(spec, law, tissue, log_.aspect)
     x = log_.displacement_mm - log_.contact_mm - offset
     f = _tissue_force(log_.time_s, x, log_.height_mm, log_.area_m2, stress, g, tau, compliance, toe, terms=terms)
+    if log_.tared_at_start:
+        # the load cell was zeroed at the first sample, the specimen already compressed (a
+        # contact before the record): what the cell reads is the force less the force there
+        f = f - f[0]
     if b0 or b1:
         f = f + b0 + b1 * (log_.time_s - log_.time_s[0])
     return f
