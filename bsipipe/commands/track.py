@@ -446,6 +446,8 @@ def _seeds_together(seeds: pd.DataFrame, diameters: dict) -> list[tuple]:
 
 
 def _read_calibration(path, views: Sequence[str]):
+    """The calibrated pair's view geometries, its two views (in ``views``' order) and the
+    calibration's own stereo reprojection RMS (px; None where the file has none)."""
     from ..imaging.triangulate import views_from_calibration
     try:
         with open(path, encoding="utf-8") as f:
@@ -470,7 +472,11 @@ def _read_calibration(path, views: Sequence[str]):
                          f"{', '.join(views)}", path=path)
     order = tuple(v for v in views if v in pair)
     try:
-        return views_from_calibration(cal, order), order
+        rms = float(st["rms_px"])
+    except (KeyError, TypeError, ValueError):
+        rms = None          # no stereo RMS: the calibration-mismatch check is left out
+    try:
+        return views_from_calibration(cal, order), order, rms if rms is not None and math.isfinite(rms) else None
     except (KeyError, ValueError, TypeError) as e:
         raise InputError(f"invalid calibration: {e}", path=path) from None
 
@@ -482,25 +488,23 @@ def _read_calibration(path, views: Sequence[str]):
 CALIBRATION_FIT_FACTOR = 2.0
 
 
-def _calibration_fit_warning(loop: dict, table: pd.DataFrame, calibration, pair) -> dict | None:
+def _calibration_fit_warning(loop: dict, table: pd.DataFrame, cal_rms: float | None, pair) -> dict | None:
     """``calibration-mismatch`` when the two-view points reproject more than
     :data:`CALIBRATION_FIT_FACTOR` times the root sum of squares of the calibration's stereo
     RMS and the markers' own centre error (0.798 / SNR per axis, RMS over the found
     positions, times sqrt 2 for the two axes): the C-arms moved since they were calibrated, or
     the calibration is another setup's.  The ray-gap flags compare points with the sequence's
-    own median, so an error common to every point passes them."""
+    own median, so an error common to every point passes them.  ``cal_rms``: the
+    calibration's stereo RMS (px; None: no check)."""
     from ..quality import warning
-    try:
-        with open(calibration, encoding="utf-8") as f:
-            cal_rms = float(json.load(f)["stereo"]["rms_px"])
-    except (OSError, ValueError, KeyError, TypeError):
+    if cal_rms is None:
         return None
     final = (loop or {}).get("final") or {}
     rms = final.get("reprojection_rms_px")
     found = table[table["found"] & table["view"].isin(pair)]
     snr = found["snr"].to_numpy(float) if "snr" in found else np.zeros(0)
     snr = snr[np.isfinite(snr) & (snr > 0)]
-    if rms is None or not np.isfinite(cal_rms) or not len(snr):
+    if rms is None or not len(snr):
         return None
     centre = float(np.sqrt(2.0 * np.mean((0.798 / snr) ** 2)))
     expected = math.hypot(cal_rms, centre)
@@ -893,6 +897,14 @@ def _frame_rates(table: pd.DataFrame) -> dict[str, float]:
     return rates
 
 
+#: What the frame-shifts warning says of the positions, and what it says instead where the
+#: loop's frame-shift took the jolts out (:func:`_stereo`).
+_JOLTS_CARRIED = ("but their 2-D positions, and any 3-D point triangulated from them, carry the jolts (nothing "
+                  "corrects them)")
+_JOLTS_TAKEN_OUT = ("their raw 2-D positions carry the jolts, and the loop's frame-shift took each view's common "
+                    "shift per frame out of the 3-D points and the smoothed 2-D centres (columns shift_x_px, "
+                    "shift_y_px)")
+
 #: A seeded marker found in fewer than this fraction of its view's frames is a warning: the
 #: indentor hides a marker for a while (the twin's two hidden ones are found in 53 and 64 % of
 #: the frames), but one found in a few frames was mostly too faint to find.
@@ -1040,8 +1052,7 @@ def _sequence_warnings(table: pd.DataFrame, events: list[dict], cfg, views, info
             "frame-shifts",
             "track: the whole picture jolted (a C-arm's vibration, the head moving) in "
             + ", ".join(f"{len(s)} frame(s) of {v} (up to {max(s):.1f} px)" for v, s in shifts.items())
-            + " (frame-shift events): the markers were followed across the jolts, but their 2-D positions, "
-              "and any 3-D point triangulated from them, carry the jolts (nothing corrects them)",
+            + " (frame-shift events): the markers were followed across the jolts, " + _JOLTS_CARRIED,
             log, views={v: {"n_frames": len(s), "max_px": max(s)} for v, s in shifts.items()}))
     return table, out
 
@@ -1119,19 +1130,14 @@ def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, 
             f"the other camera's): the rays' median gap is {turned['median_gap_mm']:.3g} mm with the views "
             f"exchanged, {turned['median_gap_as_is_mm']:.3g} mm as given ({turned['n_points']} two-view points); "
             "give each --view its own camera's frames (and the seeds their view's names)", path=cfg.views[pair[0]])
-    if turned is not None:
-        what = (f"the frames of {turned['view']} look swapped against the calibration (each view's frames "
-                "are the other camera's)" if turned["orientation"] == "swapped" else
-                f"{turned['view']}'s frames look {turned['orientation']} against the calibration")
+    if turned is not None:      # one view mirrored or turned (the swapped views raised above)
         warnings.append(warning(
             "view-orientation",
-            f"track: {what}: "
+            f"track: {turned['view']}'s frames look {turned['orientation']} against the calibration: "
             f"the rays' median gap is {turned['median_gap_mm']:.3g} mm with the positions so turned, "
             f"{turned['median_gap_as_is_mm']:.3g} mm as the frames are ({turned['n_points']} two-view points); "
-            "the 3-D points are triangulated as the frames are: "
-            + ("give each --view its own camera's frames" if turned["orientation"] == "swapped" else
-               "export the frames as the calibration images were, or calibrate from frames oriented as these"),
-            log, **turned))
+            "the 3-D points are triangulated as the frames are: export the frames as the calibration images were, "
+            "or calibrate from frames oriented as these", log, **turned))
     loop_dict["time_unit"] = time_unit
     if fit.spec.occlusion:
         # the loop's occlusion effect left these samples out of the 3-D points (a marker at the
@@ -1187,12 +1193,7 @@ def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, 
         n_sh = {v: int((o != 0).any(axis=1).sum()) for v, o in fit.frame_shifts.items()}
         for w in warnings:
             if w["code"] == "frame-shifts":
-                w["message"] = w["message"].replace(
-                    "but their 2-D positions, and any 3-D point triangulated from them, carry the jolts (nothing "
-                    "corrects them)",
-                    "their raw 2-D positions carry the jolts, and the loop's frame-shift took each view's common "
-                    "shift per frame out of the 3-D points and the smoothed 2-D centres (columns shift_x_px, "
-                    "shift_y_px)")
+                w["message"] = w["message"].replace(_JOLTS_CARRIED, _JOLTS_TAKEN_OUT)
                 w["corrected_by_loop"] = True
         log.info("track: frame-shift: %s", ", ".join(f"{v} {n} frames" for v, n in n_sh.items()))
     table = table.sort_values(["view", "frame", "marker"], kind="stable")
@@ -1324,9 +1325,9 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     shapes = {v: None if im is None else im.shape for v, im in firsts.items()}
     rois = _resolve_rois(cfg, shapes, config_path) if given_roi else _roi_per_view(cfg)
     _check_diameter(cfg, shapes, config_path)
-    rig = pair = None
+    rig = pair = cal_rms = None
     if cfg.calibration:
-        rig, pair = _read_calibration(cfg.calibration, views)
+        rig, pair, cal_rms = _read_calibration(cfg.calibration, views)
         _check_frame_sizes(rig, pair, shapes, cfg.calibration)
     seed_df = read_seeds(cfg.seeds, views, shapes) if cfg.seeds else None
     if seed_df is not None:
@@ -1386,7 +1387,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     if rig is not None:
         st = _stereo(table, events, warnings, cfg, rig, pair, seed_df, per_view_d, det, rois, info)
         table, points3d, fit = st["table"], st["points3d"], st["fit"]
-        w = _calibration_fit_warning(st["loop"], table, cfg.calibration, pair)
+        w = _calibration_fit_warning(st["loop"], table, cal_rms, pair)
         if w is not None:
             warnings.append(w)
     smoothing = None
