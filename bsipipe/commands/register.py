@@ -489,30 +489,26 @@ def _reference_effect_warnings(report, *, has_check: bool) -> list[dict]:
     return out
 
 
-def _skull_fixed(tracks: pd.DataFrame, frames: np.ndarray, refs: np.ndarray, fi: int) -> tuple[pd.DataFrame, dict]:
+def _skull_fixed(tracks: pd.DataFrame, frames: np.ndarray, refs: np.ndarray, fi: int,
+                 motions: list) -> tuple[pd.DataFrame, dict]:
     """Every frame's X-ray positions moved back onto the skull: in each frame with at least
     three of the references ``refs`` (F, N, 3) found, the rigid transform taking them onto
-    their registration-frame positions (frame index ``fi``) is applied to every marker of that
-    frame.  Returns the moved table (a copy, column ``head_motion_mm``: how far the transform
-    moved the references' centroid, NaN where not compensated) and a report: the references'
-    RMS distance from their registration-frame positions before and after, and the frames
-    left as they were."""
-    from ..geometry.registration import fit_similarity
+    their registration-frame positions (frame index ``fi``; ``motions``: those transforms,
+    :func:`~bsipipe.geometry.registration.reference_motions`) is applied to every marker of
+    that frame.  Returns the moved table (a copy, column ``head_motion_mm``: how far the
+    transform moved the references' centroid, NaN where not compensated) and a report: the
+    references' RMS distance from their registration-frame positions before and after, and
+    the frames left as they were."""
     out = tracks.copy()
     out["head_motion_mm"] = np.nan
     ref = refs[fi]
     before, after, left = [], [], []
     xyz = out[["x_mm", "y_mm", "z_mm"]].to_numpy(float, copy=True)
-    for k, f in enumerate(frames):
-        ok = np.isfinite(refs[k]).all(axis=1) & np.isfinite(ref).all(axis=1)
-        if ok.sum() < 3:
+    for k, (f, m) in enumerate(zip(frames, motions)):
+        if m is None:                   # fewer than three references, or on a line
             left.append(int(f))
             continue
-        try:
-            M = fit_similarity(refs[k][ok], ref[ok])
-        except ValueError:          # the references found in this frame lie on a line
-            left.append(int(f))
-            continue
+        M, ok = m
         before.extend(np.linalg.norm(refs[k][ok] - ref[ok], axis=1) ** 2)
         after.extend(np.linalg.norm(M.apply(refs[k][ok]) - ref[ok], axis=1) ** 2)
         rows = (out["frame"] == f).to_numpy()
@@ -669,7 +665,8 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
         warnings.append(warning("tre-not-estimated", "register: no degrees of freedom left to estimate the "
                                                      "localisation error; TRE not estimated", log))
 
-    skull = reg.skull_motion(pos[:, fit.used], fi)
+    motions = reg.reference_motions(pos[:, fit.used], fi)
+    skull = reg.skull_motion(pos[:, fit.used], fi, motions)
     skull["note"] = ("rigid motion of the used references as a whole relative to the registration frame; the "
                      "declared model has the head fixed relative to the C-arms (one transform for every frame)")
     sigmas = [m["sigma_mm"] for m in (data.motion(n) for n in used) if m and np.isfinite(m["sigma_mm"])]
@@ -678,7 +675,7 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
         # the head moved relative to the C-arms: each frame is brought back onto the skull
         # (the used references' rigid motion from the registration frame taken out), so the
         # displacements are the tissue's relative to the skull, as the FE model's are
-        tracks, head = _skull_fixed(tracks, frames, pos[:, fit.used], fi)
+        tracks, head = _skull_fixed(tracks, frames, pos[:, fit.used], fi, motions)
         warnings.append(warning(
             "head-motion", f"register: the references move together by up to {skull['max_translation_mm']:.3g} mm "
                            f"(frame {int(frames[skull['frame_of_max']])}): the head moved relative to the C-arms; "

@@ -57,7 +57,8 @@ from ..distributions import chi2_sf, f_sf
 
 __all__ = ["Similarity", "fit_similarity", "n_params", "residual_vectors", "fre", "estimate_fle",
            "tre_fitzpatrick", "tre_linearized", "tre_perturbation", "leave_one_out",
-           "reference_motion", "tracking_noise", "skull_motion", "rotation_angle_deg", "point_configuration"]
+           "reference_motion", "tracking_noise", "reference_motions", "skull_motion", "rotation_angle_deg",
+           "point_configuration"]
 
 #: Relative size of the second singular value of the centred points below which they are
 #: taken as collinear (a rotation about their line is then undetermined).
@@ -479,27 +480,43 @@ def reference_motion(track, others, *, time=None, max_knots: int = 12) -> dict:
             "delta_bic": float(chi2 - k * np.log(3 * len(idx))), "n_knots": n_knots}
 
 
-def skull_motion(tracks, frame_index: int) -> dict:
+def reference_motions(tracks, frame_index: int) -> list[tuple["Similarity", np.ndarray] | None]:
+    """Per frame of ``tracks`` (F, N, 3), the rigid transform taking the references found in
+    it onto their positions in frame ``frame_index``, and which references (N,) it used; None
+    where fewer than three are found in both frames or they lie on a line."""
+    tracks = np.asarray(tracks, dtype=float)
+    ref = tracks[frame_index]
+    out: list = []
+    for f in range(len(tracks)):
+        ok = np.all(np.isfinite(tracks[f]), axis=1) & np.all(np.isfinite(ref), axis=1)
+        T = None
+        if ok.sum() >= 3:
+            try:
+                T = fit_similarity(tracks[f][ok], ref[ok])
+            except ValueError:
+                pass
+        out.append(None if T is None else (T, ok))
+    return out
+
+
+def skull_motion(tracks, frame_index: int, motions: list | None = None) -> dict:
     """Rigid motion of the references as a whole, frame by frame, relative to frame ``frame_index``.
 
     ``tracks`` (F, N, 3), N >= 3.  In each frame where at least three references are found,
     the rigid transform taking their positions onto those in the registration frame gives a
     translation (at their centroid) and a rotation angle.  The declared model has both near
     zero (head fixed relative to the C-arms); returns ``{"n_frames", "max_translation_mm",
-    "max_rotation_deg", "frame_of_max"}`` (frame indices into ``tracks``).
+    "max_rotation_deg", "frame_of_max"}`` (frame indices into ``tracks``).  ``motions``:
+    :func:`reference_motions` of the same arguments, where the caller has them.
     """
     tracks = np.asarray(tracks, dtype=float)
-    ref = tracks[frame_index]
+    motions = reference_motions(tracks, frame_index) if motions is None else motions
     best = (0.0, 0.0, int(frame_index))
     n = 0
-    for f in range(len(tracks)):
-        ok = np.all(np.isfinite(tracks[f]), axis=1) & np.all(np.isfinite(ref), axis=1)
-        if ok.sum() < 3:
+    for f, m in enumerate(motions):
+        if m is None:
             continue
-        try:
-            T = fit_similarity(tracks[f][ok], ref[ok])
-        except ValueError:
-            continue
+        T, ok = m
         n += 1
         c = tracks[f][ok].mean(axis=0)
         tr = float(np.linalg.norm(T.apply(c) - c))
