@@ -312,20 +312,27 @@ def _subpix_window_warning(name: str, cfg: CalibrateConfig, spacings: dict, rms_
                    logger=log, view=name, half_window_px=half, corner_spacing_px=typical, rms_px=rms_px)
 
 
+def _rejected_images(sizes: dict, rejected: dict, n: int):
+    """``(file, image)`` of the first ``n`` rejected views that can be read again (a still
+    image; a stack or video: its first frame), for naming what the user's options miss."""
+    from ..io.images import read_image
+    for key in [k for k in rejected if k in sizes][:n]:
+        _, path, _, _ = sizes[key]
+        try:
+            img = read_image(path)
+        except InputError:
+            continue
+        yield path, img
+
+
 def _chessboard_named(name: str, cfg: CalibrateConfig, sizes: dict, rejected: dict, n_probe: int = 3) -> None:
     """No image of a camera shows a ``--grid`` chessboard: the board the first few show, found
     whatever its size (:func:`~bsipipe.imaging.gridfind.chessboard_size`, about a second an
     image), is named in an InputError (exit 2): ``--grid 10x7`` for a board of 10 x 7 squares,
     9 x 6 inner corners, had been exit 1, 'no 10x7 chessboard found'."""
     from ..imaging.gridfind import chessboard_size, parse_grid
-    from ..io.images import read_image
     grid = parse_grid(cfg.grid)
-    for key in [k for k in rejected if k in sizes][:n_probe]:
-        _, path, _, _ = sizes[key]
-        try:
-            img = read_image(path)          # a still image (a stack or video: its first frame)
-        except InputError:
-            continue
+    for path, img in _rejected_images(sizes, rejected, n_probe):
         # OpenCV finds a board at least as large as the size it is asked for: asked for the
         # squares (one more than the corners each way) it finds nothing; the corners of the
         # squares counted, then a small board, find the whole board
@@ -346,16 +353,10 @@ def _polarity_named(name: str, cfg: CalibrateConfig, sizes: dict, rejected: dict
     few show it with the other polarity, an InputError (exit 2) says so; a wrong polarity had
     been exit 1, 'no bright blobs found ... give --diameter-px'."""
     from ..imaging.gridfind import DetectionFailed, find_target, parse_grid
-    from ..io.images import read_image
     other = "bright" if cfg.polarity == "dark" else "dark"
     probed = found = 0
     path = None
-    for key in [k for k in rejected if k in sizes][:n_probe]:
-        _, p, _, _ = sizes[key]
-        try:
-            img = read_image(p)
-        except InputError:
-            continue
+    for p, img in _rejected_images(sizes, rejected, n_probe):
         probed += 1
         try:
             find_target(img, cfg.pattern, parse_grid(cfg.grid), cfg.spacing_mm, polarity=other,
