@@ -328,7 +328,8 @@ def _read_tables(paths: Sequence[str], modes: Sequence[str], cfg: FitConfig):
                 raise InputError(f"no row within --max-strain {cfg.max_strain}", path=p)
         tables.append(t)
         inputs.append({"path": str(p), "speed_mm_s": None, "contact_mm": None, "n_points": int(len(t)),
-                       "modes": sorted(set(t["mode"])), "stress_sign_turned": t.attrs.get("sign_turned", [])})
+                       "modes": sorted(set(t["mode"])), "stress_sign_turned": t.attrs.get("sign_turned", []),
+                       "stress_magnitudes": t.attrs.get("magnitudes", [])})
     return tables, inputs
 
 
@@ -561,24 +562,24 @@ def _contacts_moved(input_info: list[dict]) -> list[dict]:
 
 def _stress_sign_turned(input_info: list[dict]) -> list[dict]:
     """``stress-sign`` warnings: a table that wrote its loaded rows with the sign opposite to the
-    laws' (compression positive) is fitted with its sign turned, and said so."""
+    laws' (compression positive) is fitted with its sign turned, and said so; one that gives
+    magnitudes (every stress positive) with its compression rows turned."""
     from ..quality import warning
     out = []
     for info in input_info:
-        turned = info.get("stress_sign_turned") or []
-        whole = [m for m in turned if "(" not in m]
-        parts = [m for m in turned if "(" in m]
+        whole = info.get("stress_sign_turned") or []
+        parts = info.get("stress_magnitudes") or []
         said = []
         if whole:
             said.append(f"every loaded {', '.join(whole)} row has the stress's sign opposite to its strain's "
                         "(compression written positive): fitted with the sign turned")
         if parts:
-            said.append(f"every stress of {', '.join(p.split(' (')[0] for p in parts)} is positive, in tension and "
+            said.append(f"every stress of {', '.join(parts)} is positive, in tension and "
                         "compression alike (magnitudes): the compression rows fitted with the sign turned")
         if said:
             out.append(warning("stress-sign", f"fit-ogden: {Path(info['path']).name}: " + "; ".join(said)
                                + " (tension positive, compression negative)", log, path=str(info["path"]),
-                               modes=turned))
+                               modes=whole, magnitudes=parts))
     return out
 
 

@@ -137,25 +137,28 @@ def read_stress_table(path: str | os.PathLike, mode: str | None = None) -> pd.Da
         if m != "simple-shear" and lam <= 0:
             raise InputError(f"stretch {rows[k][j_stretch]!r} is not positive ({m} needs a "
                              f"stretch > 0)", path=path, line=int(line_no[k]))
-    stress, turned = _stress_sign(stretch, stress, np.asarray(modes))
+    stress, turned, magnitudes = _stress_sign(stretch, stress, np.asarray(modes))
     out = pd.DataFrame({"stretch": stretch, "nominal_stress_pa": stress, "mode": modes})
-    out.attrs.update(path=path, lines=line_no.tolist(), stress_unit=stress_unit, sign_turned=turned)
+    out.attrs.update(path=path, lines=line_no.tolist(), stress_unit=stress_unit, sign_turned=turned,
+                     magnitudes=magnitudes)
     return out
 
 
-def _stress_sign(stretch: np.ndarray, stress: np.ndarray, modes: np.ndarray) -> tuple[np.ndarray, list[str]]:
+def _stress_sign(stretch: np.ndarray, stress: np.ndarray,
+                 modes: np.ndarray) -> tuple[np.ndarray, list[str], list[str]]:
     """The stress with the sign the laws use -- positive in tension (stretch > 1, or gamma >
     0 in simple shear), negative in compression -- and the modes whose table wrote every
     loaded row with the other sign (compression positive, as many compression rigs and papers
     do), which are turned; a mode with both tension and compression rows whose every stress
     is positive gives magnitudes, and its compression rows are turned.  A mode whose rows
-    disagree among themselves otherwise is left as written.
+    disagree among themselves otherwise is left as written.  Returns the stress, the modes
+    turned whole and the modes whose compression rows were turned (magnitudes).
 
     >>> _stress_sign(np.array([1.0, 0.9, 0.8]), np.array([0.0, 10.0, 25.0]), np.array(["uniaxial"] * 3))
-    (array([  0., -10., -25.]), ['uniaxial'])
+    (array([  0., -10., -25.]), ['uniaxial'], [])
     """
     out = stress.copy()
-    turned = []
+    turned, magnitudes = [], []
     for m in dict.fromkeys(modes.tolist()):
         rows = modes == m
         strain = stretch[rows] - (0.0 if m == "simple-shear" else 1.0)
@@ -170,8 +173,8 @@ def _stress_sign(stretch: np.ndarray, stress: np.ndarray, modes: np.ndarray) -> 
             # reports |F| writes them); the compression rows take the laws' sign
             idx = np.flatnonzero(rows)[strain < 0]
             out[idx] = 0.0 - stress[idx]
-            turned.append(f"{m} (compression rows: the table gives magnitudes)")
-    return out, turned
+            magnitudes.append(m)
+    return out, turned, magnitudes
 
 
 def _header_delimiter(line: str):
