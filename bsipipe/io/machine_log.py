@@ -222,31 +222,30 @@ def _rows(lines: list[str], delimiter: str | None) -> list[list[str]]:
     return [[c.strip() for c in r] for r in rows]
 
 
-def _roles(names: list[str]) -> dict[str, int]:
-    """Column index of each channel found in a names row (first match wins)."""
-    found: dict[str, int] = {}
+def _role_columns(names: list[str]) -> dict[str, list[int]]:
+    """Column indices of each channel a names row names (every match, in order)."""
+    found: dict[str, list[int]] = {}
     for j, cell in enumerate(names):
         base, _ = split_name_unit(cell, _ALL_ROLE_NAMES)
         key = normalise_name(base)
         for role, names_ in ROLE_NAMES.items():
-            if key in names_ and role not in found:
-                found[role] = j
+            if key in names_:
+                found.setdefault(role, []).append(j)
     return found
+
+
+def _roles(names: list[str]) -> dict[str, int]:
+    """Column index of each channel found in a names row (first match wins)."""
+    return {role: cols[0] for role, cols in _role_columns(names).items()}
 
 
 def _one_specimen(path, names: list[str], h: int) -> None:
     """A names row that holds every channel twice or more is several specimens side by side
     (a Bluehill export of all specimens): one record per file (exit 2) -- the first
     match of each channel would have fitted the first specimen and dropped the others."""
-    count = {r: 0 for r in _REQUIRED}
-    cols: dict[str, list[int]] = {r: [] for r in _REQUIRED}
-    for j, cell in enumerate(names):
-        key = normalise_name(split_name_unit(cell, _ALL_ROLE_NAMES)[0])
-        for role in _REQUIRED:
-            if key in ROLE_NAMES[role]:
-                count[role] += 1
-                cols[role].append(j + 1)
-    n = min(count.values())
+    found = _role_columns(names)
+    cols = {r: [j + 1 for j in found.get(r, [])] for r in _REQUIRED}
+    n = min(len(c) for c in cols.values())
     if n >= 2:
         raise InputError(f"the header names every channel {n} times ("
                          + "; ".join(f"{r} in columns {', '.join(map(str, c))}" for r, c in cols.items())
