@@ -230,3 +230,42 @@ def test_twin_without_seeds(twin_default_noise):
         last_hidden = int(tv[(tv["marker"] == hidden) & tv["occluded"].astype(bool)]["frame"].max())
         assert any(e["kind"] == "refound" and e["marker"] == name and e["frame"] > last_hidden - 3
                    for e in res.events)
+
+
+def test_twin_with_frames_lost_from_one_view(twin):
+    """An effect nobody declared, on top of the undeclared 1 s offset: cam1's frames 30-32
+    deleted and the rest renumbered (a capture that skipped them), so from frame 30 on cam1's
+    frame k is the twin's k + 3.  The loop names ``dropped-frames``: cam1 lost 3 frames before
+    its frame 30, cam2's clock 1 s ahead within 10 %; the 3-D points, compared with the twin at
+    the times put back, are as good as the complete sequence's; and the ray gap falls to the
+    complete sequence's.  (Before the effect the loop had a constant offset or a clock drift to
+    offer: a step is neither.)"""
+    truth = twin["truth"]
+    V = views_from_calibration(truth_calibration(truth))
+    full = pd.concat([r.table for r in twin["results"].values()], ignore_index=True)
+    t1 = full[full["view"] == "cam1"]
+    t1 = t1[~t1["frame"].between(30, 32)].copy()
+    later = t1["frame"] > 32
+    period = float(np.median(np.diff(np.unique(full["time_s"].dropna()))))
+    t1.loc[later, "frame"] -= 3
+    t1.loc[later, "time_s"] = t1.loc[later, "frame"] * period
+    cut = pd.concat([t1, full[full["view"] == "cam2"]], ignore_index=True)
+    loop, fit, _ = close_stereo_loop(stereo_data(cut, (V["cam1"], V["cam2"])))
+    names = [s["effect"] for s in loop["steps"]]
+    steps = [{k: st[k] for k in ("view", "frame", "missing_frames")} for st in fit.params.get("frame_steps", [])]
+    _, err_full = _loop_and_3d(twin)
+    R1 = np.asarray(truth["cameras"]["cam1"]["R"])
+    tr1 = np.asarray(truth["cameras"]["cam1"]["t_mm"])
+    traj = truth["sequence"]["trajectories_mm"]
+    p = fit.points.dropna(subset=["x_mm"])
+    real = p["frame"].to_numpy() + 3 * (p["frame"].to_numpy() >= 30)        # the twin's frame of each point
+    T = np.array([traj[m][f] for m, f in zip(p["marker"], real)]) @ R1.T + tr1
+    err = np.linalg.norm(p[["x_mm", "y_mm", "z_mm"]].to_numpy() - T, axis=1)
+    rms, rms_full = float(np.sqrt(np.mean(err ** 2))), float(np.sqrt(np.mean(err_full ** 2)))
+    print(names, steps, fit.params.get("view_time_offset_s"), loop["baseline"]["ray_gap_rms_mm"],
+          loop["final"]["ray_gap_rms_mm"], rms, rms_full)
+    assert "dropped-frames" in names
+    assert steps == [{"view": "cam1", "frame": 30, "missing_frames": 3}]
+    assert abs(fit.params["view_time_offset_s"] - OFFSET_S) < 0.1 * OFFSET_S
+    assert rms < 1.1 * rms_full
+    np.testing.assert_allclose(p["time_s"].to_numpy(), real * period, atol=1e-9)

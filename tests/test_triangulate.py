@@ -261,11 +261,13 @@ def test_stereo_fit_with_known_offset_matches_truth():
 
 def test_a_dropped_frame_keeps_the_later_frames_paired():
     """cam2's recorder dropped frame 37 (no clock offset).  Counting its files pairs each
-    later cam2 frame with cam1's next one, a 0.1 s offset from there on: the loop then names
-    a clock effect for the whole sequence (a drift: a ramp is the nearest it has to a step),
-    and the 3-D points are off.  With the frame's
+    later cam2 frame with cam1's next one, a 0.1 s offset from there on.  With the frame's
     index left empty (``iter_frames`` reads it from the file names) the views pair as
-    recorded: no effect is named and the ray gap is the noise's."""
+    recorded: no effect is named and the ray gap is the noise's.  Counted, the loop names
+    ``dropped-frames``: cam2 lost 1 frame before its frame 37, no clock offset, and the 3-D
+    points are as good as the numbered ones' (before the effect existed the loop fitted a
+    clock drift, a ramp being the nearest it had to a step: 3-D error 0.0256 mm against
+    0.0152)."""
     cams = two_carms()
     V = views_from_cameras(cams)
     tab, pos = _moving_tracks(cams, offset_s=0.0, seed=13)
@@ -284,12 +286,16 @@ def test_a_dropped_frame_keeps_the_later_frames_paired():
         err = np.linalg.norm(p[["x_mm", "y_mm", "z_mm"]].to_numpy() - truth, axis=1)
         out[name] = ([s["effect"] for s in loop["steps"]], loop["baseline"]["ray_gap_rms_mm"],
                      float(np.sqrt(np.mean(err ** 2))))
-    print(out)
+        steps = [{k: st[k] for k in ("view", "frame", "missing_frames")} for st in fit.params.get("frame_steps", [])]
+        offset = fit.params.get("view_time_offset_s")
+    print(out, steps, offset)
     assert out["numbered"][0] == [] and out["numbered"][2] < 0.02
     assert 37 not in set(stereo_data(numbered, (V["cam1"], V["cam2"])).frames)
-    assert out["counted"][0] and set(out["counted"][0]) <= {"view-time-offset", "view-clock-drift"}
+    assert out["counted"][0] == ["dropped-frames"]
     assert out["counted"][1] > 3 * out["numbered"][1]
-    assert out["counted"][2] > 2 * out["numbered"][2]
+    assert steps == [{"view": "cam2", "frame": 37, "missing_frames": 1}]
+    assert offset == 0.0
+    assert out["counted"][2] < 1.05 * out["numbered"][2]
 
 
 @pytest.mark.parametrize("drift,offset", [(0.006, 0.05), (-0.004, -0.1)])

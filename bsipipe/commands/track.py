@@ -1149,6 +1149,21 @@ def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, 
                 at = pd.MultiIndex.from_arrays([table["frame"].to_numpy(), table["marker"].to_numpy()])
                 hit = (table["view"] == v).to_numpy() & at.isin(cells) & (table["status"] == "found").to_numpy()
                 table.loc[hit, "status"] = "partly-hidden"
+    if fit.params.get("frame_steps"):
+        # frames missing from one view partway through (the loop's dropped-frames): said, with
+        # where, so the user can check the recording
+        steps = fit.params["frame_steps"]
+        unit = "frame" if time_unit == "frame" else "s"
+        warnings.append(warning(
+            "dropped-frames",
+            "track: the loop found frames missing partway through: "
+            + "; ".join(f"{st['view']} lost {st['missing_frames']} frame{'s' if st['missing_frames'] > 1 else ''} "
+                        f"before its frame {st['frame']}" for st in steps)
+            + ": from there on its frames are paired with the other view's taken that many periods later (3-D "
+              "points interpolated across the gap; markers3d.csv's time_s has the lost frames put back, "
+              "markers2d.csv keeps each view's own count); check the recording (a capture that skipped frames, "
+              "frame files deleted and the rest renumbered)" + (" (times in frames: no --fps)" if unit == "frame" else ""),
+            log, steps=steps))
     points3d = fit.points.copy()
     if time_unit == "frame":
         points3d["time_s"] = np.nan
@@ -1227,7 +1242,8 @@ def _smoothed_points(table: pd.DataFrame, st: dict, smoothing: dict, max_offset_
     del sub
     fit = stereo_fit(sdata, StereoSpec(occlusion=fit.spec.occlusion),
                      fixed_offset_s=fit.params.get("view_time_offset_s"),
-                     fixed_drift=fit.params.get("view_clock_drift"), max_offset_s=max_offset_s)
+                     fixed_drift=fit.params.get("view_clock_drift"), fixed_steps=fit.params.get("frame_steps"),
+                     max_offset_s=max_offset_s)
     raw = st["points3d"].set_index(["frame", "marker"])[["x_mm", "y_mm", "z_mm", "ray_gap_mm"]]
     points3d = fit.points.copy()
     if st["time_unit"] == "frame":

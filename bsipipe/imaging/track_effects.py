@@ -23,6 +23,15 @@ leaves independent values of either sign.  These effects leave structure instead
     at :math:`(t - \delta)/(1 + \varepsilon)`, both chosen to minimise the (robust) sum
     of squared gaps.  Parameters ``view_time_offset_s`` (at B's first frame) and
     ``view_clock_drift`` (:math:`\varepsilon`, B's frame interval over A's, minus one).
+``dropped-frames``
+    One view lost frames partway through (a capture that skipped them, frame files deleted
+    and the rest renumbered): from there on its frame *i* pairs with the other view's taken
+    whole periods apart, a step in the offset that no constant offset or rate fits.  Fix
+    (:func:`estimate_frame_steps`): the per-frame gaps at offsets a whole number of periods
+    apart, the path with a BIC penalty per step (dynamic programming); the lost time put back
+    into the view that lost it (:func:`stepped_times`; B's tracks interpolated across the
+    gap) and the clock offset estimated on those times.  Parameters ``view_time_offset_s``
+    and ``frame_steps`` (view, first frame after the gap, missing frames).
 ``frame-shift``
     A view's whole picture jolts from frame to frame (a C-arm's vibration: the source and
     detector move, the head does not): every marker of that view's frame is shifted by a
@@ -102,10 +111,12 @@ class StereoSpec:
     clock_drift: bool = False        # with time_offset: B's clock also runs at its own rate
     frame_shift: bool = False        # each view's picture shifted by a common offset per frame
     capture: bool = False            # a view's track held by another spot: re-found along the other view's ray
+    frame_steps: bool = False        # with time_offset: the offset steps by whole frames (a view lost frames)
 
     def describe(self) -> str:
-        parts = [n for n, on in (("view-time-offset", self.time_offset and not self.clock_drift),
-                                 ("view-clock-drift", self.clock_drift), ("frame-shift", self.frame_shift),
+        parts = [n for n, on in (("view-time-offset", self.time_offset and not (self.clock_drift or self.frame_steps)),
+                                 ("view-clock-drift", self.clock_drift), ("dropped-frames", self.frame_steps),
+                                 ("frame-shift", self.frame_shift),
                                  ("identity-swap", self.swaps), ("track-capture", self.capture),
                                  ("occlusion", self.occlusion)) if on]
         return "stereo" + ("+" + "+".join(parts) if parts else "")
@@ -962,6 +973,173 @@ def estimate_clock_drift(d: StereoData, max_offset_s: float | None = None, xb: n
     return out
 
 
+def _step_segments(C: np.ndarray, penalty: float) -> np.ndarray:
+    """The piecewise-constant state path through the frames of least ``C[state, frame]``
+    summed plus ``penalty`` per change of state (dynamic programming); (F,) state indices."""
+    S, F = C.shape
+    if F == 0:
+        return np.zeros(0, int)
+    cost = C[:, 0].copy()
+    back = np.zeros((S, F), int)
+    for f in range(1, F):
+        k = int(np.argmin(cost))
+        jump = cost[k] + penalty
+        stay = cost <= jump
+        back[:, f] = np.where(stay, np.arange(S), k)
+        cost = np.where(stay, cost, jump) + C[:, f]
+    path = np.empty(F, int)
+    path[-1] = int(np.argmin(cost))
+    for f in range(F - 1, 0, -1):
+        path[f - 1] = back[path[f], f]
+    return path
+
+
+def stepped_times(d: StereoData, steps: list[dict] | None) -> tuple[np.ndarray, np.ndarray]:
+    """Each view's frame times (``ta``, ``tb``) with the frames it lost put back: from each
+    step's ``frame`` on, the ``view`` that lost ``missing_frames`` frames (see
+    :func:`estimate_frame_steps`) took its frames that many periods later than their
+    numbers say."""
+    ta, tb = d.ta.astype(float), d.tb.astype(float)
+    for st in steps or ():
+        later = d.frames >= st["frame"]
+        if st["view"] == d.views[0].name:
+            ta = ta + np.where(later, st["missing_frames"] * st["frame_period_s"], 0.0)
+        else:
+            tb = tb + np.where(later, st["missing_frames"] * st["frame_period_s"], 0.0)
+    return ta, tb
+
+
+def estimate_frame_steps(d: StereoData, max_offset_s: float | None = None, xb: np.ndarray | None = None,
+                         smooth_frames: int = 9, max_step_frames: int = 5) -> dict:
+    r"""Frames missing from one view (or repeated in it) partway through: B's clock minus A's
+    is :math:`\delta + j_f\,\Delta t` at A's frame :math:`f`, :math:`\Delta t` the frame
+    period and :math:`j_f` a whole number of frames, constant between steps.
+
+    A view that drops :math:`k` frames (a recorder that skips frames, files deleted and the
+    rest renumbered) pairs its later frames with the other view's taken :math:`k` periods
+    earlier: a step in the offset that no constant offset or clock rate fits.  The capped
+    squared gaps (as in :func:`estimate_time_offset`, of the smoothed tracks, over the points
+    both views see) are summed per frame for every :math:`j` within
+    :math:`\pm` ``max_step_frames`` of the constant offset; the path of :math:`j` with the
+    least sum plus a BIC penalty per step (its frame and size: :math:`2 \ln n`, on gaps in
+    units of their robust variance) is found by dynamic programming; :math:`\delta` is then
+    refined (Brent) on that path and the path found again.  Steps of
+    :math:`k < 0` frames mean A's frames from there on were taken later than their index
+    says (A lost :math:`|k|` frames, or B repeated some); :math:`k > 0`, the reverse.
+
+    Returns ``view_time_offset_s`` (:math:`\delta` before the first step), ``frame_steps``
+    (each: the ``view`` that lost frames, its first ``frame`` number taken
+    ``missing_frames`` periods later than the number says, ``frame_period_s``; for B, which
+    of its frames follows the gap is chosen on the gaps with its times put back,
+    :func:`stepped_times`), ``gain`` of the capped mean squared gap, and the search's record;
+    no steps where the path has none."""
+    const = estimate_time_offset(d, max_offset_s, xb, smooth_frames)
+    dt = float(const.get("frame_period_s") or (np.nanmedian(np.diff(d.ta)) if len(d.ta) > 1 else 1.0))
+    delta0 = float(const["view_time_offset_s"])
+    out = {"view_time_offset_s": delta0, "frame_steps": [], "constant": const, "frame_period_s": dt,
+           "max_step_frames": int(max_step_frames)}
+    K = int(max_step_frames)
+    prob = _gap_problem(d, xb, smooth_frames, abs(delta0) + (K + 1) * dt)
+    if prob is None or len(prob.fi) < 10 or not np.isfinite(dt) or dt <= 0:
+        out["note"] = "too few points seen by both views over the whole search range"
+        return out
+    fi = prob.fi
+    F = len(d.ta)
+    J = np.arange(-K, K + 1)
+    g1 = prob.gaps(d.ta - delta0)
+    s1 = max(1.4826 * float(np.median(np.abs(g1 - np.median(g1)))), 1e-12)
+    cap = (5 * s1) ** 2
+    penalty = 2.0 * math.log(len(fi))
+
+    def frame_costs(delta: float) -> np.ndarray:
+        """(2K+1, F): each frame's capped squared gaps at offset delta + j dt, in units of s1^2."""
+        C = np.empty((len(J), F))
+        for r, j in enumerate(J):
+            g = prob.gaps(d.ta - (delta + j * dt))
+            C[r] = np.bincount(fi, np.minimum(g * g, cap), minlength=F)
+        return C / (s1 * s1)
+
+    def total(delta: float, path: np.ndarray) -> float:
+        g = prob.gaps(d.ta - (delta + J[path] * dt))
+        return float(np.mean(np.minimum(g * g, cap)))
+
+    path = _step_segments(frame_costs(delta0), penalty)
+    delta = delta0
+    if np.any(path != path[0]):
+        delta, _ = _minimise(lambda x: total(x, path), delta0 - dt, delta0 + dt, 21, 1e-6 * dt)
+        path = _step_segments(frame_costs(delta), penalty)
+    c_const = float(np.mean(np.minimum(g1 * g1, cap)))
+    c_path = total(delta, path)
+    out["mean_sq_gap_mm2"] = {"constant": c_const, "steps": c_path}
+    out["n_points"] = int(len(fi))
+    out["note"] = ("capped squared gaps of the smoothed tracks per frame, offsets a whole number of frame periods "
+                   "apart; path by dynamic programming, BIC penalty per step")
+    change = np.flatnonzero(np.diff(path)) + 1
+    if len(change) > 1:
+        # the tracks are smoothed across a step (A's positions jump in time there), so the path
+        # can take one step as several within the smoothing window: steps of one sign that close
+        # are one, placed where it leaves the least cost
+        groups = [[int(change[0])]]
+        for c in change[1:]:
+            p0, c0 = groups[-1][-1], groups[-1][0]
+            same = np.sign(J[path[c]] - J[path[c - 1]]) == np.sign(J[path[c0]] - J[path[c0 - 1]])
+            groups[-1].append(int(c)) if (c - p0 < smooth_frames and same) else groups.append([int(c)])
+        for grp in groups:
+            if len(grp) == 1:
+                continue
+            lo, hi = grp[0], grp[-1]
+            before, after = path[lo - 1], path[hi]
+            best = None
+            for c in range(lo, hi + 1):
+                trial = path.copy()
+                trial[lo:c] = before
+                trial[c:hi + 1] = after
+                t = total(delta, trial)
+                if best is None or t < best[0]:
+                    best = (t, trial)
+            path = best[1]
+        c_path = total(delta, path)
+        out["mean_sq_gap_mm2"]["steps"] = c_path
+        change = np.flatnonzero(np.diff(path)) + 1
+    if len(change) == 0:
+        out["view_time_offset_s"] = float(delta + J[path[0]] * dt) if F else delta0
+        if path[0] != K:
+            out["note"] += "; no step: one whole-frame offset throughout"
+        return out
+    va, vb = d.views
+    offset = float(delta + J[path[0]] * dt)
+    steps = []
+    for c in change:
+        k = int(J[path[c]] - J[path[c - 1]])
+        st = {"view": va.name if k < 0 else vb.name, "frame": int(d.frames[c]), "missing_frames": abs(k),
+              "frame_period_s": dt, "found_at_frame": int(d.frames[c])}
+        if k > 0:
+            # B lost frames: its frame paired with A's frame c is about c - k; which of B's
+            # frames comes first after the gap is decided on the gaps with B's times put back
+            # (A's frame in the gap is then interpolated across it)
+            best = None
+            for i in range(max(c - k - 1, 1), min(c - k + 3, F)):
+                trial = steps + [{**st, "frame": int(d.frames[i])}]
+                ta_s, tb_s = stepped_times(d, trial)
+                pr = _gap_problem(replace(d, ta=ta_s, tb=tb_s), xb, smooth_frames, abs(offset) + dt)
+                if pr is None:
+                    continue
+                g = pr.gaps(ta_s - offset)
+                cst = float(np.mean(np.minimum(g * g, cap)))
+                if best is None or cst < best[0]:
+                    best = (cst, trial[-1])
+            if best is not None:
+                st = best[1]
+        steps.append(st)
+    # the clock offset itself as estimate_time_offset judges one (with its checks that it acts
+    # like a clock), on the times with the lost frames put back
+    ta_s, tb_s = stepped_times(d, steps)
+    clock = estimate_time_offset(replace(d, ta=ta_s, tb=tb_s), max_offset_s, xb, smooth_frames)
+    out.update(view_time_offset_s=float(clock["view_time_offset_s"]), frame_steps=steps, offset_search=clock,
+               gain=1.0 - c_path / c_const if c_const > 0 else 0.0)
+    return out
+
+
 class WindowSource:
     """Search windows in a view's frames, read again on request (``track-capture``).
 
@@ -1288,9 +1466,10 @@ def find_swaps(d: StereoData, xb: np.ndarray, min_ratio: float = 0.25, min_noise
 
 
 def stereo_fit(d: StereoData, spec: StereoSpec, *, max_offset_s: float | None = None,
-               fixed_offset_s: float | None = None, fixed_drift: float | None = None) -> StereoFit:
+               fixed_offset_s: float | None = None, fixed_drift: float | None = None,
+               fixed_steps: list[dict] | None = None) -> StereoFit:
     """Triangulate under ``spec`` (see the module docstring); ``fixed_offset_s`` (and
-    ``fixed_drift``) apply a known clock instead of estimating it."""
+    ``fixed_drift`` or ``fixed_steps``) apply a known clock instead of estimating it."""
     va, vb = d.views
     F, M = d.xa.shape[:2]
     params: dict = {}
@@ -1359,13 +1538,23 @@ def stereo_fit(d: StereoData, spec: StereoSpec, *, max_offset_s: float | None = 
         params["track_captures"] = [{k: v for k, v in c.items() if not k.startswith("_")} for c in captures]
         n_params += len(captures)
     offset, drift = 0.0, 0.0
-    if spec.time_offset or spec.clock_drift or fixed_offset_s is not None:
+    tq = None                                       # B's (time-corrected) times paired with A's frames
+    if spec.time_offset or spec.clock_drift or spec.frame_steps or fixed_offset_s is not None:
         if fixed_offset_s is not None:
             offset = float(fixed_offset_s)
             drift = float(fixed_drift or 0.0)
             params["view_time_offset_s"] = offset
             if fixed_drift is not None:
                 params["view_clock_drift"] = drift
+            if fixed_steps:
+                params["frame_steps"] = fixed_steps
+        elif spec.frame_steps:
+            est = estimate_frame_steps(d, max_offset_s, xb)
+            offset = est["view_time_offset_s"]
+            params["view_time_offset_s"] = offset
+            params["frame_steps"] = est["frame_steps"]
+            params["frame_steps_search"] = {k: v for k, v in est.items() if k != "frame_steps"}
+            n_params += 1 + 2 * len(est["frame_steps"])
         elif spec.clock_drift:
             est = estimate_clock_drift(d, max_offset_s, xb)
             offset, drift = est["view_time_offset_s"], est["view_clock_drift"]
@@ -1379,14 +1568,15 @@ def stereo_fit(d: StereoData, spec: StereoSpec, *, max_offset_s: float | None = 
             params["view_time_offset_s"] = offset
             params["time_offset_search"] = est
             n_params += 1
-        xb = _pchip_at(d.tb, xb, (d.ta - offset) / (1.0 + drift))
+        ta_s, tb_s = stepped_times(d, params.get("frame_steps"))
+        tq = (ta_s - offset) / (1.0 + drift)
+        xb = _pchip_at(tb_s, xb, tq)
     sus_a, sus_b = d.suspect_a.copy(), d.suspect_b.copy()
-    if (spec.time_offset or spec.clock_drift) and (offset != 0.0 or drift != 0.0):
+    if (spec.time_offset or spec.clock_drift or spec.frame_steps) and tq is not None and np.any(tq != d.ta):
         # B's flags move with its samples: a suspect sample taints the interpolated points near it
-        tq = (d.ta - offset) / (1.0 + drift)
         sb_t = np.zeros_like(sus_b)
         for j in range(M):
-            tsus = d.tb[sus_b[:, j]]
+            tsus = tb_s[sus_b[:, j]]
             if len(tsus):
                 near = np.abs(tq[:, None] - tsus[None, :]).min(axis=1) < np.nanmedian(np.diff(d.tb))
                 sb_t[:, j] = near
@@ -1415,7 +1605,9 @@ def stereo_fit(d: StereoData, spec: StereoSpec, *, max_offset_s: float | None = 
                 n_single += int(one.sum())
         params["single_view_points"] = n_single
     # covariates: the 3-D velocity projected on the rays' common normal
-    vel = _velocity(d.ta, X)
+    # A's frames after frames A lost were taken later than their nominal times say
+    ta = stepped_times(d, params.get("frame_steps"))[0] if params.get("frame_steps") else d.ta
+    vel = _velocity(ta, X)
     nrm = r["normal"].reshape(F, M, 3)          # the rays' common normals (NaN where a view is missing)
     v_perp = np.einsum("fmk,fmk->fm", vel, nrm)
     speed = np.linalg.norm(vel, axis=2)
@@ -1423,7 +1615,7 @@ def stereo_fit(d: StereoData, spec: StereoSpec, *, max_offset_s: float | None = 
     order = np.argwhere(two.T)                       # marker-major, frames in order
     mi, fi = order[:, 0], order[:, 1]
     res = g[fi, mi]
-    rows = {"frame": np.repeat(d.frames[:, None], M, axis=1), "time_s": np.repeat(d.ta[:, None], M, axis=1),
+    rows = {"frame": np.repeat(d.frames[:, None], M, axis=1), "time_s": np.repeat(ta[:, None], M, axis=1),
             "marker": np.tile(np.array(d.markers, dtype=object)[None, :], (F, 1))}
     pts = pd.DataFrame({k: v.ravel() for k, v in rows.items()})
     pts["x_mm"], pts["y_mm"], pts["z_mm"] = X[..., 0].ravel(), X[..., 1].ravel(), X[..., 2].ravel()
@@ -1442,7 +1634,7 @@ def stereo_fit(d: StereoData, spec: StereoSpec, *, max_offset_s: float | None = 
         pts = pts.sort_values(["frame", "marker"], kind="stable").reset_index(drop=True)
     pts["marker"] = pts["marker"].astype(str)
     cov = {"v_perp_mm_s": np.nan_to_num(v_perp[fi, mi]), "speed_mm_s": np.nan_to_num(speed[fi, mi]),
-           "time_s": d.ta[fi]}
+           "time_s": ta[fi]}
     return StereoFit(spec, pts, res, params, n_params, cov, mi, fi, swaps, xb, frame_shifts=shifts,
                      captures=captures)
 
@@ -1526,8 +1718,16 @@ EFFECTS = (
            "grows (or shrinks) through the sequence",
            "the signed ray gap follows the marker's velocity across the rays, with a slope that changes with "
            "time (covariates v_perp_mm_s and time_s)",
-           lambda s: None if s.clock_drift else replace(s, time_offset=True, clock_drift=True),
+           lambda s: None if s.clock_drift else replace(s, time_offset=True, clock_drift=True, frame_steps=False),
            ("view_time_offset_s", "view_clock_drift")),
+    Effect("dropped-frames",
+           "one view lost frames partway through (a recorder that skipped them, files deleted and the rest "
+           "renumbered) or repeated some: from there on its frames are paired with the other view's taken whole "
+           "frame periods apart",
+           "the signed ray gap follows the marker's velocity across the rays from some frame on, or with a slope "
+           "that changes there by a whole frame period (covariates v_perp_mm_s and time_s)",
+           lambda s: None if s.frame_steps else replace(s, time_offset=True, clock_drift=False, frame_steps=True),
+           ("view_time_offset_s", "frame_steps")),
     Effect("frame-shift",
            "a view's whole picture jolts from frame to frame (a C-arm's vibration): every marker of the frame is "
            "shifted by a common offset the other view does not see",
