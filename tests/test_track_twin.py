@@ -252,7 +252,7 @@ def test_twin_with_frames_lost_from_one_view(twin):
     cut = pd.concat([t1, full[full["view"] == "cam2"]], ignore_index=True)
     loop, fit, _ = close_stereo_loop(stereo_data(cut, (V["cam1"], V["cam2"])))
     names = [s["effect"] for s in loop["steps"]]
-    steps = [{k: st[k] for k in ("view", "frame", "missing_frames")} for st in fit.params.get("frame_steps", [])]
+    steps = [{k: st[k] for k in ("view", "kind", "frame", "n_frames")} for st in fit.params.get("frame_steps", [])]
     _, err_full = _loop_and_3d(twin)
     R1 = np.asarray(truth["cameras"]["cam1"]["R"])
     tr1 = np.asarray(truth["cameras"]["cam1"]["t_mm"])
@@ -265,7 +265,7 @@ def test_twin_with_frames_lost_from_one_view(twin):
     print(names, steps, fit.params.get("view_time_offset_s"), loop["baseline"]["ray_gap_rms_mm"],
           loop["final"]["ray_gap_rms_mm"], rms, rms_full)
     assert "dropped-frames" in names
-    assert steps == [{"view": "cam1", "frame": 30, "missing_frames": 3}]
+    assert steps == [{"view": "cam1", "kind": "lost", "frame": 30, "n_frames": 3}]
     assert abs(fit.params["view_time_offset_s"] - OFFSET_S) < 0.1 * OFFSET_S
     assert rms < 1.1 * rms_full
     np.testing.assert_allclose(p["time_s"].to_numpy(), real * period, atol=1e-9)

@@ -286,16 +286,59 @@ def test_a_dropped_frame_keeps_the_later_frames_paired():
         err = np.linalg.norm(p[["x_mm", "y_mm", "z_mm"]].to_numpy() - truth, axis=1)
         out[name] = ([s["effect"] for s in loop["steps"]], loop["baseline"]["ray_gap_rms_mm"],
                      float(np.sqrt(np.mean(err ** 2))))
-        steps = [{k: st[k] for k in ("view", "frame", "missing_frames")} for st in fit.params.get("frame_steps", [])]
+        steps = [{k: st[k] for k in ("view", "kind", "frame", "n_frames")} for st in fit.params.get("frame_steps", [])]
         offset = fit.params.get("view_time_offset_s")
     print(out, steps, offset)
     assert out["numbered"][0] == [] and out["numbered"][2] < 0.02
     assert 37 not in set(stereo_data(numbered, (V["cam1"], V["cam2"])).frames)
     assert out["counted"][0] == ["dropped-frames"]
     assert out["counted"][1] > 3 * out["numbered"][1]
-    assert steps == [{"view": "cam2", "frame": 37, "missing_frames": 1}]
+    assert steps == [{"view": "cam2", "kind": "lost", "frame": 37, "n_frames": 1}]
     assert offset == 0.0
     assert out["counted"][2] < 1.05 * out["numbered"][2]
+
+
+@pytest.mark.parametrize("view,copies", [("cam1", 1), ("cam2", 2)])
+def test_a_repeated_frame_is_named_and_paired_at_its_time(view, copies):
+    """A capture that repeats frame 37 (``copies`` times) and goes on with the next: from
+    there on that view's frames are ``copies`` periods early against their numbers, the same
+    step in the offset as the other view losing frames.  The copies are identical frames
+    (the same centres to the bit), so the loop's dropped-frames names the repeat, in the right
+    view; cam1's copies have no 3-D point (nothing new), the other points have the twin's
+    times and are as good as the untouched sequence's."""
+    cams = two_carms()
+    V = views_from_cameras(cams)
+    tab, pos = _moving_tracks(cams, offset_s=0.0, seed=13)
+    _, fit0, _ = close_stereo_loop(stereo_data(tab, (V["cam1"], V["cam2"])))
+    mine = tab[tab["view"] == view]
+    rep = [mine[mine["frame"] <= 37]]
+    for c in range(1, copies + 1):
+        rep.append(mine[mine["frame"] == 37].assign(frame=37 + c))
+    rep.append(mine[mine["frame"] > 37].assign(frame=lambda t: t["frame"] + copies))
+    rep = pd.concat(rep, ignore_index=True)
+    rep["time_s"] = rep["frame"] / 10.0
+    cut = pd.concat([tab[tab["view"] != view], rep], ignore_index=True)
+    loop, fit, _ = close_stereo_loop(stereo_data(cut, (V["cam1"], V["cam2"])))
+    steps = [{k: st[k] for k in ("view", "kind", "frame", "n_frames")} for st in fit.params.get("frame_steps", [])]
+    p = fit.points.dropna(subset=["x_mm"])
+    fr = p["frame"].to_numpy()
+    # the twin's time of each point: cam1's frame numbers carry the repeat when cam1 repeated
+    real = np.where(fr <= 37, fr, fr - copies) if view == "cam1" else fr
+    if view == "cam1":
+        assert not set(fr) & set(range(38, 38 + copies))          # the copies: no 3-D point
+    X = pos(real / 10.0)
+    truth = X[np.arange(len(p)), p["marker"].str[1:].astype(int).to_numpy() - 1]
+    err = np.linalg.norm(p[["x_mm", "y_mm", "z_mm"]].to_numpy() - truth, axis=1)
+    p0 = fit0.points.dropna(subset=["x_mm"])
+    X0 = pos(p0["frame"].to_numpy() / 10.0)
+    t0 = X0[np.arange(len(p0)), p0["marker"].str[1:].astype(int).to_numpy() - 1]
+    err0 = np.linalg.norm(p0[["x_mm", "y_mm", "z_mm"]].to_numpy() - t0, axis=1)
+    rms, rms0 = float(np.sqrt(np.mean(err ** 2))), float(np.sqrt(np.mean(err0 ** 2)))
+    print([s["effect"] for s in loop["steps"]], steps, rms, rms0)
+    assert [s["effect"] for s in loop["steps"]] == ["dropped-frames"]
+    assert steps == [{"view": view, "kind": "repeated", "frame": 38, "n_frames": copies}]
+    assert rms < 1.1 * rms0
+    np.testing.assert_allclose(p["time_s"].to_numpy(), real / 10.0, atol=1e-9)
 
 
 @pytest.mark.parametrize("drift,offset", [(0.006, 0.05), (-0.004, -0.1)])

@@ -1150,20 +1150,20 @@ def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, 
                 hit = (table["view"] == v).to_numpy() & at.isin(cells) & (table["status"] == "found").to_numpy()
                 table.loc[hit, "status"] = "partly-hidden"
     if fit.params.get("frame_steps"):
-        # frames missing from one view partway through (the loop's dropped-frames): said, with
-        # where, so the user can check the recording
+        # frames lost or repeated by one view partway through (the loop's dropped-frames):
+        # said, with where, so the user can check the recording
         steps = fit.params["frame_steps"]
-        unit = "frame" if time_unit == "frame" else "s"
         warnings.append(warning(
             "dropped-frames",
-            "track: the loop found frames missing partway through: "
-            + "; ".join(f"{st['view']} lost {st['missing_frames']} frame{'s' if st['missing_frames'] > 1 else ''} "
-                        f"before its frame {st['frame']}" for st in steps)
-            + ": from there on its frames are paired with the other view's taken that many periods later (3-D "
-              "points interpolated across the gap; markers3d.csv's time_s has the lost frames put back, "
-              "markers2d.csv keeps each view's own count); check the recording (a capture that skipped frames, "
-              "frame files deleted and the rest renumbered)" + (" (times in frames: no --fps)" if unit == "frame" else ""),
-            log, steps=steps))
+            "track: the loop found the views' frames out of step partway through: "
+            + "; ".join(f"{st['view']} lost {st['n_frames']} frame{'s' if st['n_frames'] > 1 else ''} before its frame "
+                        f"{st['frame']}" if st["kind"] == "lost" else
+                        f"{st['view']} repeated its frame {st['frame'] - 1} {st['n_frames']} time"
+                        f"{'s' if st['n_frames'] > 1 else ''} (frame {st['frame']} on)" for st in steps)
+            + ". The frames are paired by their times put right (the other view's tracks interpolated across a "
+              "gap; a repeated frame's copies hold nothing new and have no 3-D point); markers3d.csv's time_s has "
+              "the times put right, markers2d.csv keeps each view's own count. Check the recording (a capture that skipped or "
+              "repeated frames, frame files deleted and the rest renumbered)", log, steps=steps))
     points3d = fit.points.copy()
     if time_unit == "frame":
         points3d["time_s"] = np.nan

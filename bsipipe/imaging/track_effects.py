@@ -995,18 +995,43 @@ def _step_segments(C: np.ndarray, penalty: float) -> np.ndarray:
 
 
 def stepped_times(d: StereoData, steps: list[dict] | None) -> tuple[np.ndarray, np.ndarray]:
-    """Each view's frame times (``ta``, ``tb``) with the frames it lost put back: from each
-    step's ``frame`` on, the ``view`` that lost ``missing_frames`` frames (see
-    :func:`estimate_frame_steps`) took its frames that many periods later than their
-    numbers say."""
+    """Each view's frame times (``ta``, ``tb``) with its steps (:func:`estimate_frame_steps`)
+    put right: where the ``view`` ``lost`` ``n_frames`` frames, its frames from ``frame`` on
+    were taken that many periods later than their numbers say; where it ``repeated`` a frame
+    ``n_frames`` times, the copies (``frame`` on, ``n_frames`` of them) get no time (they
+    hold nothing new: A's have no 3-D point, B's are not interpolated) and the frames after
+    them were taken that many periods earlier."""
     ta, tb = d.ta.astype(float), d.tb.astype(float)
     for st in steps or ():
-        later = d.frames >= st["frame"]
-        if st["view"] == d.views[0].name:
-            ta = ta + np.where(later, st["missing_frames"] * st["frame_period_s"], 0.0)
+        n, dt = int(st["n_frames"]), float(st["frame_period_s"])
+        t = ta if st["view"] == d.views[0].name else tb
+        if st["kind"] == "lost":
+            t = t + np.where(d.frames >= st["frame"], n * dt, 0.0)
         else:
-            tb = tb + np.where(later, st["missing_frames"] * st["frame_period_s"], 0.0)
+            copies = (d.frames >= st["frame"]) & (d.frames < st["frame"] + n)
+            t = np.where(copies, np.nan, t - np.where(d.frames >= st["frame"] + n, n * dt, 0.0))
+        if st["view"] == d.views[0].name:
+            ta = t
+        else:
+            tb = t
     return ta, tb
+
+
+def _repeated_run(x: np.ndarray, lo: int, hi: int, n: int) -> int | None:
+    """The first index ``i`` in [lo, hi] where frames ``i .. i+n-1`` of the tracks ``x``
+    (F, M, 2) repeat frame ``i - 1`` exactly (every marker found in both, at least 2):
+    a repeated picture gives the tracker the same pixels, so the same centres to the bit."""
+    F = len(x)
+
+    def same(i):
+        a, b = x[i], x[i - 1]
+        ok = np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1)
+        return ok.sum() >= 2 and np.array_equal(a[ok], b[ok])
+
+    for i in range(max(lo, 1), min(hi, F - n) + 1):
+        if all(same(i + r) for r in range(n)) and not (i + n < F and same(i + n)):
+            return i
+    return None
 
 
 def estimate_frame_steps(d: StereoData, max_offset_s: float | None = None, xb: np.ndarray | None = None,
@@ -1028,11 +1053,12 @@ def estimate_frame_steps(d: StereoData, max_offset_s: float | None = None, xb: n
     says (A lost :math:`|k|` frames, or B repeated some); :math:`k > 0`, the reverse.
 
     Returns ``view_time_offset_s`` (:math:`\delta` before the first step), ``frame_steps``
-    (each: the ``view`` that lost frames, its first ``frame`` number taken
-    ``missing_frames`` periods later than the number says, ``frame_period_s``; for B, which
-    of its frames follows the gap is chosen on the gaps with its times put back,
-    :func:`stepped_times`), ``gain`` of the capped mean squared gap, and the search's record;
-    no steps where the path has none."""
+    (each: the ``view``, ``kind`` ``lost`` -- its first ``frame`` number taken ``n_frames``
+    periods later than the number says; for B, which of its frames follows the gap is chosen
+    on the gaps with its times put back -- or ``repeated`` -- the first of ``n_frames``
+    copies of the frame before, found as frames identical to it in the view whose repeat
+    makes the same step; ``frame_period_s``; see :func:`stepped_times`), ``gain`` of the
+    capped mean squared gap, and the search's record; no steps where the path has none."""
     const = estimate_time_offset(d, max_offset_s, xb, smooth_frames)
     dt = float(const.get("frame_period_s") or (np.nanmedian(np.diff(d.ta)) if len(d.ta) > 1 else 1.0))
     delta0 = float(const["view_time_offset_s"])
@@ -1111,7 +1137,15 @@ def estimate_frame_steps(d: StereoData, max_offset_s: float | None = None, xb: n
     steps = []
     for c in change:
         k = int(J[path[c]] - J[path[c - 1]])
-        st = {"view": va.name if k < 0 else vb.name, "frame": int(d.frames[c]), "missing_frames": abs(k),
+        # the same step is one view losing |k| frames or the other repeating one |k| times: a
+        # repeat shows as frames identical to the one before
+        rep_view, x_rep = (va, d.xa) if k > 0 else (vb, d.xb)
+        i = _repeated_run(x_rep, c - abs(k) - 2, c + 2, abs(k))
+        if i is not None:
+            steps.append({"view": rep_view.name, "kind": "repeated", "frame": int(d.frames[i]), "n_frames": abs(k),
+                          "frame_period_s": dt, "found_at_frame": int(d.frames[c])})
+            continue
+        st = {"view": va.name if k < 0 else vb.name, "kind": "lost", "frame": int(d.frames[c]), "n_frames": abs(k),
               "frame_period_s": dt, "found_at_frame": int(d.frames[c])}
         if k > 0:
             # B lost frames: its frame paired with A's frame c is about c - k; which of B's
@@ -1576,7 +1610,7 @@ def stereo_fit(d: StereoData, spec: StereoSpec, *, max_offset_s: float | None = 
         # B's flags move with its samples: a suspect sample taints the interpolated points near it
         sb_t = np.zeros_like(sus_b)
         for j in range(M):
-            tsus = tb_s[sus_b[:, j]]
+            tsus = tb_s[sus_b[:, j] & np.isfinite(tb_s)]
             if len(tsus):
                 near = np.abs(tq[:, None] - tsus[None, :]).min(axis=1) < np.nanmedian(np.diff(d.tb))
                 sb_t[:, j] = near
