@@ -1035,7 +1035,7 @@ def _repeated_run(x: np.ndarray, lo: int, hi: int, n: int) -> int | None:
 
 
 def estimate_frame_steps(d: StereoData, max_offset_s: float | None = None, xb: np.ndarray | None = None,
-                         smooth_frames: int = 9, max_step_frames: int = 5) -> dict:
+                         smooth_frames: int = 9, max_step_frames: int | None = None) -> dict:
     r"""Frames missing from one view (or repeated in it) partway through: B's clock minus A's
     is :math:`\delta + j_f\,\Delta t` at A's frame :math:`f`, :math:`\Delta t` the frame
     period and :math:`j_f` a whole number of frames, constant between steps.
@@ -1045,7 +1045,8 @@ def estimate_frame_steps(d: StereoData, max_offset_s: float | None = None, xb: n
     earlier: a step in the offset that no constant offset or clock rate fits.  The capped
     squared gaps (as in :func:`estimate_time_offset`, of the smoothed tracks, over the points
     both views see) are summed per frame for every :math:`j` within
-    :math:`\pm` ``max_step_frames`` of the constant offset; the path of :math:`j` with the
+    :math:`\pm` ``max_step_frames`` of the constant offset (default: enough to reach the
+    constant offset's search range from it, at least 5 and at most 30); the path of :math:`j` with the
     least sum plus a BIC penalty per step (its frame and size: :math:`2 \ln n`, on gaps in
     units of their robust variance) is found by dynamic programming; :math:`\delta` is then
     refined (Brent) on that path and the path found again.  Steps of
@@ -1063,8 +1064,11 @@ def estimate_frame_steps(d: StereoData, max_offset_s: float | None = None, xb: n
     dt = float(const.get("frame_period_s") or (np.nanmedian(np.diff(d.ta)) if len(d.ta) > 1 else 1.0))
     delta0 = float(const["view_time_offset_s"])
     out = {"view_time_offset_s": delta0, "frame_steps": [], "constant": const, "frame_period_s": dt,
-           "max_step_frames": int(max_step_frames)}
-    K = int(max_step_frames)
+           "max_step_frames": max_step_frames}
+    if max_step_frames is None:
+        lim = float(const["search_s"][1])
+        max_step_frames = min(max(5, math.ceil((lim + abs(delta0)) / dt - 1e-9)), 30) if dt > 0 else 5
+    out["max_step_frames"] = K = int(max_step_frames)
     prob = _gap_problem(d, xb, smooth_frames, abs(delta0) + (K + 1) * dt)
     if prob is None or len(prob.fi) < 10 or not np.isfinite(dt) or dt <= 0:
         out["note"] = "too few points seen by both views over the whole search range"
