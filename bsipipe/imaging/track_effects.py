@@ -25,13 +25,15 @@ leaves independent values of either sign.  These effects leave structure instead
     ``view_clock_drift`` (:math:`\varepsilon`, B's frame interval over A's, minus one).
 ``dropped-frames``
     One view lost frames partway through (a capture that skipped them, frame files deleted
-    and the rest renumbered): from there on its frame *i* pairs with the other view's taken
-    whole periods apart, a step in the offset that no constant offset or rate fits.  Fix
-    (:func:`estimate_frame_steps`): the per-frame gaps at offsets a whole number of periods
-    apart, the path with a BIC penalty per step (dynamic programming); the lost time put back
-    into the view that lost it (:func:`stepped_times`; B's tracks interpolated across the
-    gap) and the clock offset estimated on those times.  Parameters ``view_time_offset_s``
-    and ``frame_steps`` (view, first frame after the gap, missing frames).
+    and the rest renumbered) or repeated one: from there on its frame *i* pairs with the
+    other view's taken whole periods apart, a step in the offset that no constant offset or
+    rate fits.  Fix (:func:`estimate_frame_steps`): the per-frame gaps at offsets a whole
+    number of periods apart, the path with a BIC penalty per step (dynamic programming); a
+    step is a repeat where a view's frames there are identical to the frame before, else
+    frames lost; the view's times put right (:func:`stepped_times`; B's tracks interpolated
+    across a gap, a repeat's copies left out) and the clock offset estimated on those times.
+    Parameters ``view_time_offset_s`` and ``frame_steps`` (view, lost or repeated, frame,
+    how many).
 ``frame-shift``
     A view's whole picture jolts from frame to frame (a C-arm's vibration: the source and
     detector move, the head does not): every marker of that view's frame is shifted by a
@@ -1113,7 +1115,10 @@ def estimate_frame_steps(d: StereoData, max_offset_s: float | None = None, xb: n
         for c in change[1:]:
             p0, c0 = groups[-1][-1], groups[-1][0]
             same = np.sign(J[path[c]] - J[path[c - 1]]) == np.sign(J[path[c0]] - J[path[c0 - 1]])
-            groups[-1].append(int(c)) if (c - p0 < smooth_frames and same) else groups.append([int(c)])
+            if c - p0 < smooth_frames and same:
+                groups[-1].append(int(c))
+            else:
+                groups.append([int(c)])
         for grp in groups:
             if len(grp) == 1:
                 continue
@@ -1132,9 +1137,8 @@ def estimate_frame_steps(d: StereoData, max_offset_s: float | None = None, xb: n
         out["mean_sq_gap_mm2"]["steps"] = c_path
         change = np.flatnonzero(np.diff(path)) + 1
     if len(change) == 0:
-        out["view_time_offset_s"] = float(delta + J[path[0]] * dt) if F else delta0
-        if path[0] != K:
-            out["note"] += "; no step: one whole-frame offset throughout"
+        # no step: the constant offset, as estimate_time_offset judged it
+        out["note"] += "; no step"
         return out
     va, vb = d.views
     offset = float(delta + J[path[0]] * dt)
