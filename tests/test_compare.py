@@ -562,3 +562,30 @@ def test_mesh_or_displacements_in_metres_read_as_mm(tmp_path):
     assert r.exit_code == 0, r.output
     res = json.loads((tmp_path / "c" / "compare.json").read_text())
     assert any("0.001 times the measured ones" in w for w in res["warnings"]), res["warnings"]
+
+
+def test_result_node_labels_the_mesh_lacks(tmp_path):
+    """A CSV numbered from 0 against a mesh numbered from 1 had put every displacement on its
+    neighbour's node, exit 0 with a wrong sigma and no word (the probe: the study's 1.542 mm
+    read as 1.862 mm): every label is in the mesh once shifted by one, so it is exit 2 naming
+    the file.  A result with an extra node the mesh lacks (a solver's reference node) is
+    compared, with a warning naming it."""
+    coords, conn = brick_hex(3, 3, 3, size=SIZE)
+    X = points_inside(6, size=SIZE, margin=0.3, seed=3)
+    names = [f"M{i + 1}" for i in range(6)]
+    u = linear_field(coords)
+    write_markers_ct(tmp_path / "m.csv", names, X, linear_field(X))
+    ids = write_inp(tmp_path / "mesh.inp", coords, [("C3D8", conn)])
+    write_disp_csv(tmp_path / "u0.csv", ids - 1, u)
+    r = _invoke("compare", "--fe-displacements", tmp_path / "u0.csv", "--mesh", tmp_path / "mesh.inp",
+                "--markers", tmp_path / "m.csv", "-o", tmp_path / "a")
+    assert r.exit_code == 2 and "u0.csv" in r.output and "numbered from 0" in r.output, r.output
+    assert not (tmp_path / "a").exists()
+    extra_ids = np.concatenate([ids, [ids.max() + 100]])
+    write_disp_csv(tmp_path / "u_extra.csv", extra_ids, np.vstack([u, [[9.0, 9.0, 9.0]]]))
+    r = _invoke("compare", "--fe-displacements", tmp_path / "u_extra.csv", "--mesh", tmp_path / "mesh.inp",
+                "--markers", tmp_path / "m.csv", "-o", tmp_path / "b")
+    assert r.exit_code == 0, r.output
+    res = json.loads((tmp_path / "b" / "compare.json").read_text())
+    assert res["sigma_mm"] < 1e-6
+    assert any(f"e.g. {ids.max() + 100})" in w for w in res["warnings"]), res["warnings"]

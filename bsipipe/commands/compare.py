@@ -54,6 +54,28 @@ class CompareConfig(StrictModel):
 _UNIT_MM = {"m": 1000.0, "cm": 10.0, "mm": 1.0, "um": 1e-3}
 
 
+def _unmatched_labels(fe_mesh, disp, match: dict, mesh, path) -> str | None:
+    """Node labels of the FE result that the mesh lacks.  All of them found in the mesh once
+    shifted by one (a result numbered from 0 against a mesh numbered from 1, or the reverse)
+    would put every displacement on its neighbour's node: exit 2.  Otherwise a warning (extra
+    nodes of the solver's model, such as a reference node, are left out; a result of another
+    mesh would be compared wrongly)."""
+    if disp.node_ids is None or not match.get("n_unmatched_result_nodes"):
+        return None
+    have = np.asarray(fe_mesh.node_ids, dtype=np.int64)
+    got = np.asarray(disp.node_ids, dtype=np.int64)
+    out = got[~np.isin(got, have)]
+    for shift in (1, -1):
+        if np.isin(got + shift, have).all():
+            raise InputError(
+                f"{len(out)} node label(s) of the FE result are not in the mesh {mesh} (e.g. {', '.join(map(str, out[:3]))}), "
+                f"and every label {'+' if shift > 0 else '-'} 1 is: the result looks numbered from "
+                f"{'0' if shift > 0 else '2'} against the mesh's labels; write the result with the mesh's node labels",
+                path=path)
+    return (f"compare: {len(out)} node(s) of the FE result are not in the mesh {mesh} (e.g. "
+            f"{', '.join(map(str, out[:5]))}) and are left out; a result of another mesh would be compared wrongly")
+
+
 def _units_hint(nodes_mm: np.ndarray, markers_mm: np.ndarray, length_unit: str) -> str | None:
     """Why no marker is in the mesh, where the mesh's coordinates are in other units than
     ``length_unit`` says: as read, the markers lie more than twice the mesh's size away from
@@ -186,6 +208,9 @@ def run(fe_displacements: str | os.PathLike, mesh: str | os.PathLike, markers: s
     if match["n_matched"] == 0:
         raise InputError(f"no node of the FE result matches a node of the mesh {mesh} ({match['matched_by']})",
                          path=fe_displacements)
+    w = _unmatched_labels(fe_mesh, disp, match, mesh, fe_displacements)
+    if w:
+        warnings.append(w)
     u_model = locator.interpolate(nodal, loc)
     skipped = dict(mf.skipped)
     keep = []
