@@ -228,3 +228,27 @@ def test_deck_header_values_round_trip(tmp_path):
     p.write_text(f"** a comment\n** {abaqus_header_line('fe_time_zero_xray_s', 3.75)}\n*NODE\n"
                  f"** {abaqus_header_line('late', 1)}\n")
     assert abaqus_header_values(p) == {"fe_time_zero_xray_s": "3.75"}
+
+
+@pytest.mark.parametrize("which", ["fe results in ms", "marker times in ms"])
+def test_fe_and_marker_clocks_in_different_units_are_invalid_input(tmp_path, which):
+    """FE results solved with a deck in ms set against a deck header in s (or a marker table
+    whose time_s holds ms) had been exit 0: the measured frame's FE time fell outside the
+    results' span, the nearest result (the first, or the last) was compared, and only a
+    warning said the time was outside (the probe: the study's sigma 1.542 mm read as 0.905 or
+    1.087 mm).  The FE results span about 1000 times the table's time and 1000 times the
+    frame's FE time lies inside them: exit 2 naming the units."""
+    header = f"** {abaqus_header_line('fe_time_zero_xray_s', 10.0)}\n** {abaqus_header_line('fe_time_unit', 's')}\n"
+    mesh, fe, markers = _setup(tmp_path, header=header)
+    if which == "fe results in ms":
+        t = pd.read_csv(fe)
+        t["time_s"] *= 1000.0
+        t.to_csv(fe, index=False, float_format="%.17g")
+    else:
+        m = pd.read_csv(markers)
+        m["time_s"] = (m["time_s"] - 10.0) * 1000.0 + 10.0
+        m.to_csv(markers, index=False, float_format="%.17g")
+    r = _invoke("compare", "--fe-displacements", fe, "--mesh", mesh, "--markers", markers, "--frame", 3,
+                "-o", tmp_path / "cmp")
+    assert r.exit_code == 2 and "same unit" in r.output and "fe.csv" in r.output, r.output
+    assert not (tmp_path / "cmp").exists()

@@ -196,6 +196,7 @@ def run(fe_displacements: str | os.PathLike, mesh: str | os.PathLike, markers: s
             u_r = locator.interpolate(displacements_on_mesh(fe_mesh, r)[0], loc)
             ok = np.all(np.isfinite(u_r), axis=1)
             peak_values.append(float(np.linalg.norm(u_r[ok], axis=1).mean()) if ok.any() else np.nan)
+    _time_units_check(clock, [r.time for r in results], table, header, fe_displacements, markers, mesh)
     choice = choose_fe_result(last.n_results, given=cfg.fe_result,
                               fe_times=[r.time for r in results] if clock["target_fe_time"] is not None else None,
                               target_fe_time=clock["target_fe_time"], time_tol=clock["time_tol"],
@@ -297,6 +298,36 @@ def run(fe_displacements: str | os.PathLike, mesh: str | os.PathLike, markers: s
 
 #: FE time units a deck states (``** bsipipe: fe_time_unit``) -> per second.
 _PER_S = {"s": 1.0, "ms": 1000.0}
+
+
+def _time_units_check(clock: dict, fe_times, table: pd.DataFrame, header: dict, fe_path, markers_path,
+                      mesh_path) -> None:
+    """Exit 2 where the measured frame's FE time lies outside the FE results' span, 1000 times
+    it (or a thousandth) inside, and the FE results span about 1000 times the marker table's
+    time (or a thousandth; within a factor 3): the FE results, the deck's header and the
+    marker table do not count time in the same unit (ms against s), and the result nearest in
+    time would be the wrong one.  (An FE run of part of the experiment spans a fraction of the
+    table's time, not a thousand times it.)"""
+    t = clock.get("target_fe_time")
+    times = np.asarray([x for x in fe_times if x is not None], dtype=float)
+    if t is None or len(times) < 2 or not np.all(np.isfinite(times)) or "time_s" not in table.columns:
+        return
+    lo, hi = float(times.min()), float(times.max())
+    tol = float(clock.get("time_tol") or 0.0)
+    ts = pd.to_numeric(table["time_s"], errors="coerce").dropna()
+    per_s = _PER_S.get(header.get("fe_time_unit", "s"), 1.0)
+    span_table = (float(ts.max()) - float(ts.min())) * per_s if len(ts) > 1 else 0.0
+    if lo - tol <= t <= hi + tol or span_table <= 0 or hi <= lo:
+        return
+    ratio = (hi - lo) / span_table
+    for f in (1000.0, 1e-3):
+        if f / 3 < ratio < 3 * f and lo - tol * f <= t * f <= hi + tol * f:
+            raise InputError(
+                f"the measured frame's FE time ({t:.6g} {header.get('fe_time_unit', 's')}, from {clock['source']}) "
+                f"lies outside the FE results' times {lo:.6g}..{hi:.6g}, and {f:g} times it inside: the FE results, "
+                f"the deck {mesh_path} (header: FE time unit {header.get('fe_time_unit', 's')!r}) and the marker "
+                f"table {markers_path} (time_s in s) do not count time in the same unit; give the deck the results "
+                "were solved with, or the markers' times in seconds", path=fe_path)
 
 
 def _fe_clock(table: pd.DataFrame, frame: int, time_s: float | None, header: dict, fe_format: str) -> dict:
