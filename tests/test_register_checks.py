@@ -441,3 +441,29 @@ def test_head_motion_is_taken_out_of_every_frame(tmp_path):
     assert err.max() < 0.05, err.max()
     assert mct.loc[mct["frame"] >= 18, "head_motion_mm"].min() > 0.9
     assert mct.loc[mct["frame"] < 18, "head_motion_mm"].max() < 0.05
+
+
+def test_xray_markers_in_metres_are_named_as_such(tmp_path):
+    """markers3d.csv in metres against a CT in mm: exit 2 (as before), and the message now
+    names the X-ray file as the one that looks like metres (it had named the CT file and said
+    its coordinates looked like micrometres)."""
+    _trial(tmp_path)
+    x3 = pd.read_csv(tmp_path / "markers3d.csv")
+    x3[["x_mm", "y_mm", "z_mm"]] /= 1000.0
+    x3.to_csv(tmp_path / "markers3d.csv", index=False)
+    r, _ = _register(tmp_path)
+    assert r.exit_code == 2, r.output
+    assert r.output.split(": ")[2].endswith("markers3d.csv") and "look like metres" in r.output, r.output
+    assert not (tmp_path / "out").exists()
+
+
+def test_reference_names_that_differ_in_case_are_pointed_out(tmp_path):
+    """References given as R1.. against a CT file labelled r1..: exit 2 (names match as
+    written), and the message says which labels the file has."""
+    def edit(ct):
+        for n in list(ct):
+            if n.startswith("R"):
+                ct[n.lower()] = ct.pop(n)
+    _trial(tmp_path, ct_edit=edit)
+    r, _ = _register(tmp_path)
+    assert r.exit_code == 2 and "it has r1" in r.output, r.output

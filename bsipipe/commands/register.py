@@ -384,6 +384,10 @@ def _check_handedness(xray: dict, ct: dict, *, scale: bool, ct_path, system, ref
 #: magnification error (a C-arm's source distance or pixel size off by tens of per cent at
 #: most); beyond it the files' lengths are in different units.
 MAX_SPREAD_RATIO = 2.0
+#: RMS distance (mm) of reference markers from their centroid that a skull's craniotomy can
+#: hold (beads millimetres to centimetres apart); beyond it, in one file and not the other,
+#: that file's coordinates are in other units.
+PLAUSIBLE_SPREAD_MM = (0.5, 500.0)
 
 
 def _check_length_units(x_mm, y_mm, *, ct_path, xray_path) -> None:
@@ -401,11 +405,20 @@ def _check_length_units(x_mm, y_mm, *, ct_path, xray_path) -> None:
     r = sy / sx
     if 1.0 / MAX_SPREAD_RATIO <= r <= MAX_SPREAD_RATIO:
         return
+    # which file is off: reference markers around a craniotomy lie millimetres to centimetres
+    # apart, so a spread far outside PLAUSIBLE_SPREAD_MM names the file in other units
+    lo, hi = PLAUSIBLE_SPREAD_MM
+    xray_off = not lo <= sx <= hi and lo <= sy <= hi
+    ratio = 1.0 / r if xray_off else r
     units = {1e-3: "metres", 1e-2: "centimetres", 1e3: "micrometres"}
-    near = min(units, key=lambda u: abs(np.log10(r / u)))
+    near = min(units, key=lambda u: abs(np.log10(ratio / u)))
     hint = (f": its coordinates look like {units[near]} (give them in mm, or convert)"
-            if abs(np.log10(r / near)) < np.log10(MAX_SPREAD_RATIO) else
-            ": its coordinates are in other units than the X-ray's millimetres, or not of these markers")
+            if abs(np.log10(ratio / near)) < np.log10(MAX_SPREAD_RATIO) else
+            ": its coordinates are in other units than millimetres, or not of these markers")
+    if xray_off:
+        raise InputError(f"the reference markers span {sx:.4g} (RMS from their centroid) in the X-ray markers and "
+                         f"{sy:.4g} mm in the CT file ({ct_path}), {ratio:.3g} times as much, beyond any C-arm "
+                         f"magnification error{hint}", path=xray_path)
     raise InputError(f"the reference markers span {sy:.4g} (RMS from their centroid) in the CT file and {sx:.4g} mm "
                      f"in the X-ray markers ({xray_path}), {r:.3g} times as much, beyond any C-arm magnification "
                      f"error{hint}", path=ct_path)
@@ -572,7 +585,9 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
         elif r in markups.skipped:
             missing[r] = f"in {ct} but {markups.skipped[r]}"
         else:
-            missing[r] = f"not in {ct}"
+            alike = [k for k in ct_pos if k.strip().casefold() == r.strip().casefold()]
+            missing[r] = f"not in {ct}" + (f" (it has {', '.join(alike)}: names match as written, case "
+                                           "included)" if alike else "")
     F, found, miss_x = choose_frame(tracks, in_ct, cfg.frame, xray_path=xray)
     missing.update({r: f"{why} ({xray})" for r, why in miss_x.items()})
     if len(found) < MIN_REFERENCES:
