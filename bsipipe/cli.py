@@ -353,7 +353,11 @@ def export_fe(config, out) -> None:
                f"{res['indentor']['depth_mm']:.3f} mm, {res['indentor']['speed_mm_per_min']:.3f} mm/min; "
                + ("log vs X-ray n/a" if d is None
                   else f"log vs X-ray RMS {d['rms_mm']:.4f} mm, max {d['max_mm']:.4f} mm")
-               + f"; {s['n_springs']} springs of {s['per_spring_n_per_mm']:.5g} N/mm; wrote {out}/manifest.json")
+               + (f"; {s['n_springs']} springs of {s['per_spring_n_per_mm']:.5g} N/mm"
+                  if res["springs"]["lumping"] == "uniform" else
+                  f"; {s['n_springs']} springs of {s['in_decks_n_per_mm']['min']:.5g}-{s['in_decks_n_per_mm']['max']:.5g} "
+                  "N/mm (tributary areas)")
+               + f"; wrote {out}/manifest.json")
 
 
 #: First threshold of the cyclic garbage collector in a command's process (Python's default: 700).

@@ -117,3 +117,74 @@ def test_calculix_runs_the_visco_deck_and_compare_reads_dat_and_frd_alike(prony_
     for m in res["dat"]["markers"]:
         a, b = (np.array(res[k]["markers"][m]["model_mm"]) for k in ("dat", "frd"))
         assert np.abs(a - b).max() < DAT_FRD_TOL_MM
+
+
+def _abaqus_spring_stiffness(deck: str) -> dict[int, float]:
+    """Element id -> stiffness from the deck's SPRINGA blocks and their *SPRING cards."""
+    lines = deck.splitlines()
+    members, k_of = {}, {}
+    i = 0
+    while i < len(lines):
+        up = lines[i].upper()
+        if up.startswith("*ELEMENT") and "SPRINGA" in up:
+            name = up.split("ELSET=")[1].strip()
+            i += 1
+            while i < len(lines) and not lines[i].startswith("*"):
+                members.setdefault(name, []).append(int(lines[i].split(",")[0]))
+                i += 1
+            continue
+        if up.startswith("*SPRING,"):
+            k_of[up.split("ELSET=")[1].strip()] = float(lines[i + 2])
+            i += 3
+            continue
+        i += 1
+    return {e: k_of[name] for name, ids in members.items() for e in ids}
+
+
+@pytest.mark.parametrize("lumping", ["uniform", "tributary"])
+def test_interface_springs_uniform_or_by_tributary_area(tmp_path, lumping):
+    """interface.lumping: uniform gives every spring k x A / n (the published rule) and, on the
+    demonstration mesh whose interface nodes' tributary areas differ more than twofold, a
+    warning with the range; tributary gives each spring k x its node's tributary area, in
+    all three decks (ABAQUS: a *SPRING card per stiffness; LS-DYNA: each element's scale
+    factor S on one material; FEBio: a discrete set and material per stiffness), the same
+    total stiffness, and CalculiX runs the deck (a whole-number stiffness is written with a
+    decimal point: CalculiX had read such a line as degrees of freedom and stopped)."""
+    build_inputs(tmp_path, extra={"interface": {"lumping": lumping}})
+    res = _invoke("export-fe", tmp_path / "export.yaml", "-o", tmp_path / "out")
+    assert res.exit_code == 0, res.output
+    out = tmp_path / "out"
+    man = json.loads((out / "manifest.json").read_text())
+    sp = pd.read_csv(out / "springs.csv")
+    k_area = man["springs"]["stiffness_n_per_mm_per_mm2"]
+    lumped = k_area * sp["tributary_area_mm2"].to_numpy()
+    uniform = k_area * man["springs"]["deck"]["area_mm2"] / len(sp)
+    want = lumped if lumping == "tributary" else np.full(len(sp), uniform)
+    np.testing.assert_allclose(sp["stiffness_n_per_mm"], want, rtol=1e-9)          # springs.csv's digits
+    np.testing.assert_allclose(sp["stiffness_n_per_mm"].sum(), k_area * man["springs"]["deck"]["area_mm2"], rtol=1e-9)
+    warned = any("tributary areas range" in w for w in man["warnings"])
+    assert warned == (lumping == "uniform" and lumped.max() / lumped.min() > 2)
+    # ABAQUS: each spring element's stiffness, in deck units (a common factor from N/mm)
+    k_abq = _abaqus_spring_stiffness((out / "abaqus" / "model.inp").read_text())
+    k_abq = np.array([k_abq[int(e)] for e in sp["spring"]])
+    factor = k_abq / want
+    np.testing.assert_allclose(factor, factor[0], rtol=1e-9)
+    # LS-DYNA: material K times each element's S
+    text = "\n".join(p.read_text() for p in sorted((out / "lsdyna").glob("*.k")))
+    lines = text.splitlines()
+    k_mat = float(lines[lines.index("$#     mid         k") + 1][10:20])
+    at = lines.index("*ELEMENT_DISCRETE") + 2
+    rows = {}
+    for ln in lines[at:]:
+        if ln.startswith("*") or ln.startswith("$"):
+            break
+        rows[int(ln[:8])] = float(ln[40:56])
+    k_dyna = np.array([k_mat * rows[int(e)] for e in sp["spring"]])
+    np.testing.assert_allclose(k_dyna / want, (k_dyna / want)[0], rtol=1e-6)
+    # FEBio: the springs' materials hold the same stiffnesses
+    feb = (out / "febio" / "model.feb").read_text()
+    n_mats = feb.count('type="linear spring"')
+    assert n_mats == len(np.unique(np.round(sp["tributary_area_mm2"], 6))) if lumping == "tributary" else n_mats == 1
+    if ccx_executable() is not None:
+        run_ccx((out / "abaqus" / "model.inp").read_text(), jobname="model", keep_dir=tmp_path / "ccx")
+        assert (tmp_path / "ccx" / "model.dat").stat().st_size > 0

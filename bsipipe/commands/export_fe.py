@@ -302,13 +302,19 @@ def _manifest(h, cfg, files, sources, reg, machine_log, u) -> dict:
                           "tolerance_mm": cfg.deck.amplitude_tolerance_mm},
         },
         "springs": {
-            "formula": "stiffness per spring = interface stiffness x interface area / number of springs",
+            "formula": ("stiffness per spring = interface stiffness x interface area / number of springs"
+                        if cfg.interface.lumping == "uniform" else
+                        "stiffness per spring = interface stiffness x the node's tributary area"),
+            "lumping": cfg.interface.lumping,
             "stiffness_n_per_mm_per_mm2": cfg.interface.stiffness_n_per_mm_per_mm2,
             "study": {"area_mm2": h.nominal_area_mm2, "area_source": h.nominal_area_source,
                       "n_springs": cfg.interface.n_springs, "per_spring_n_per_mm": h.spring_nominal_n_per_mm},
             "deck": {"area_mm2": sp.area_mm2, "n_springs": sp.n_springs, "n_faces": sp.n_faces,
                      "per_spring_n_per_mm": h.spring_deck_n_per_mm,
                      "per_spring_deck_units": h.spring_deck_n_per_mm * u.per_n / (u.per_m / 1000.0),
+                     "in_decks_n_per_mm": {"min": float(h.spring_k_n_per_mm.min()),
+                                           "max": float(h.spring_k_n_per_mm.max()),
+                                           "sum": float(h.spring_k_n_per_mm.sum())},
                      "deck_unit": f"{u.force}/{u.length}"},
             "length_mm": cfg.interface.spring_length_mm,
             "anchors": cfg.interface.anchors,

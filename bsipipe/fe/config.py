@@ -82,13 +82,19 @@ class LogConfig(StrictModel):
 
 
 class InterfaceConfig(StrictModel):
-    """Brain-skull interface springs: stiffness per spring = k x area / n."""
+    """Brain-skull interface springs: stiffness per spring = k x area / n (``lumping: uniform``,
+    the published model's rule) or k x the node's tributary area (``tributary``)."""
 
     stiffness_n_per_mm_per_mm2: PositiveFloat = Field(11.45, description="interface stiffness per unit area")
     area_mm2: PositiveFloat | None = Field(None, description="the study's interface area; default the deck "
                                                              "mesh's interface area")
     n_springs: PositiveInt = Field(5240, description="the study's number of springs")
     spring_length_mm: PositiveFloat = Field(0.3, description="skull node this far outside the brain node")
+    lumping: Literal["uniform", "tributary"] = Field(
+        "uniform", description="uniform: every spring k x area / n (the published model's rule, exact on a mesh "
+                               "of equal interface cells); tributary: each spring k x its node's tributary area "
+                               "(a distributed stiffness lumped consistently on any mesh; the decks then carry one "
+                               "stiffness per spring)")
     anchors: Literal["sliding", "fixed"] = Field(
         "sliding", description="sliding: a spring's skull end follows its brain node along the skull "
                                "(frictionless interface, the spring stays normal); fixed: skull nodes fixed")

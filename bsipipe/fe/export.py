@@ -529,6 +529,7 @@ class Handoff:
     springs: Any
     spring_nominal_n_per_mm: float
     spring_deck_n_per_mm: float
+    spring_k_n_per_mm: np.ndarray                 # (n_springs,) each spring's stiffness in the decks
     nominal_area_mm2: float
     nominal_area_source: str
     skull_ids: np.ndarray
@@ -768,6 +769,20 @@ def build_handoff(cfg, *, fit: dict, transform, markers_ct: pd.DataFrame, log: L
         warnings.append(f"the deck mesh has {springs.n_springs} interface nodes, the study "
                         f"{cfg.interface.n_springs} springs: the deck's springs carry k x A_mesh / n_mesh = "
                         f"{deck_k:.6g} N/mm each (the study's k x A / n = {nominal_k:.6g} N/mm)")
+    trib = np.asarray(springs.tributary_area_mm2, dtype=float)
+    if cfg.interface.lumping == "tributary":
+        spring_k = k_area * trib
+    else:
+        spring_k = np.full(springs.n_springs, deck_k)
+        lo, hi = float(trib.min()), float(trib.max())
+        if lo > 0 and hi / lo > 2.0:
+            # the uniform rule is exact on equal cells only: on this mesh it gives some nodes
+            # several times, others a fraction of, the stiffness of their share of the surface
+            mean = float(trib.mean())
+            warnings.append(f"the interface nodes' tributary areas range {lo:.3g}-{hi:.3g} mm^2 (mean {mean:.3g}): "
+                            f"the uniform springs k x A / n carry {mean / hi:.2f}-{mean / lo:.2f} times the "
+                            "stiffness of each node's share of the surface; interface.lumping: tributary gives "
+                            "each spring k x its tributary area (springs.csv lumped_stiffness_n_per_mm)")
     skull_base = 10 ** int(np.ceil(np.log10(int(mesh.node_ids.max()) + 1)))
     skull_ids = skull_base + np.arange(1, springs.n_springs + 1)
     equations = (sliding_anchor_equations(springs.brain_nodes, skull_ids, springs.normals)
@@ -792,7 +807,7 @@ def build_handoff(cfg, *, fit: dict, transform, markers_ct: pd.DataFrame, log: L
                    trajectory=trajectory, difference_contact=diff_contact, difference_record=diff_record,
                    amplitude_time_s=tau, amplitude_depth_mm=depth, amplitude_source=amp_source, target=target,
                    markers=markers, mesh=mesh, springs=springs, spring_nominal_n_per_mm=nominal_k,
-                   spring_deck_n_per_mm=deck_k, nominal_area_mm2=nominal_area, nominal_area_source=area_source,
+                   spring_deck_n_per_mm=deck_k, spring_k_n_per_mm=spring_k, nominal_area_mm2=nominal_area, nominal_area_source=area_source,
                    skull_ids=skull_ids, anchor_equations=equations, marker_nodes=marker_nodes,
                    markers_in_mesh=in_mesh, markers_outside_mesh=outside, speed_mm_per_min=speed, depth_mm=depth_max,
                    checks=checks,
@@ -862,7 +877,7 @@ def render_files(h: Handoff, cfg, sources: dict[str, str | None], *,
     step_s, dt_s = deck_increments(h, cfg.deck.max_increment_mm)
     t_deck = h.amplitude_time_s * per_s
     a_deck = h.amplitude_depth_mm * per_mm
-    k_deck = h.spring_deck_n_per_mm * per_n_per_mm
+    k_deck = h.spring_k_n_per_mm * per_n_per_mm
     xyz = mesh.coords_mm * per_mm
     skull_xyz = sp.skull_xyz_mm * per_mm
     ne_max = max(int(b.element_ids.max()) for b in mesh.blocks)
@@ -896,9 +911,13 @@ def render_files(h: Handoff, cfg, sources: dict[str, str | None], *,
         where,
         f"FE time 0 = contact (log time {h.window.time_s:.6g} s); the analysis spans {step_s:.6g} s "
         f"({step_s * per_s:.6g} {u.time}), contact to release",
-        f"interface springs: {cfg.interface.stiffness_n_per_mm_per_mm2:g} N/mm per mm^2 x {sp.area_mm2:.6g} mm^2 / "
-        f"{sp.n_springs} springs = {h.spring_deck_n_per_mm:.6g} N/mm each, {cfg.interface.spring_length_mm:g} mm "
-        f"long, anchors {cfg.interface.anchors}",
+        (f"interface springs: {cfg.interface.stiffness_n_per_mm_per_mm2:g} N/mm per mm^2 x {sp.area_mm2:.6g} mm^2 / "
+         f"{sp.n_springs} springs = {h.spring_deck_n_per_mm:.6g} N/mm each"
+         if cfg.interface.lumping == "uniform" else
+         f"interface springs: {cfg.interface.stiffness_n_per_mm_per_mm2:g} N/mm per mm^2 x each node's tributary "
+         f"area = {h.spring_k_n_per_mm.min():.6g}-{h.spring_k_n_per_mm.max():.6g} N/mm ({sp.n_springs} springs, "
+         f"{sp.area_mm2:.6g} mm^2)")
+        + f", {cfg.interface.spring_length_mm:g} mm long, anchors {cfg.interface.anchors}",
         f"FE time 0 on the marker tables' (X-ray) clock: contact log time + clock offset {h.clock_offset_s:g} s",
         abaqus_header_line("fe_time_zero_xray_s", repr(float(h.window.time_s + h.clock_offset_s))),
         abaqus_header_line("fe_time_unit", u.time),
@@ -1042,11 +1061,11 @@ def render_files(h: Handoff, cfg, sources: dict[str, str | None], *,
     for k, ax in enumerate("xyz"):
         sp_df[f"skull_{ax}_mm"] = sp.skull_xyz_mm[:, k]
     sp_df["tributary_area_mm2"] = sp.tributary_area_mm2
-    sp_df["stiffness_n_per_mm"] = h.spring_deck_n_per_mm
+    sp_df["stiffness_n_per_mm"] = h.spring_k_n_per_mm
     sp_df["lumped_stiffness_n_per_mm"] = cfg.interface.stiffness_n_per_mm_per_mm2 * sp.tributary_area_mm2
     files.append(OutputFile("springs.csv", _csv(sp_df),
                             "per-node interface springs of the deck mesh: brain and skull node, outward normal, "
-                            "tributary area, the deck's uniform stiffness k A / n and the lumped k x tributary "
-                            "area (for codes that take a per-node stiffness)", "CSV", "mm, mm^2, N/mm",
+                            "tributary area, the decks' stiffness (interface.lumping: uniform k A / n, or "
+                            "tributary) and the lumped k x tributary area", "CSV", "mm, mm^2, N/mm",
                             spring_sources))
     return files

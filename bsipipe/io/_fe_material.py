@@ -236,6 +236,20 @@ def number(x: float) -> str:
     return s
 
 
+def stiffness_groups(stiffness, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Springs of equal stiffness: ``stiffness`` (one value, or ``n``) to the distinct values
+    and each spring's index into them.  Values equal to 12 significant digits are one (a
+    deck writes 14; nodes of equal tributary area differ in the last bits of their sums).
+
+    >>> values, group = stiffness_groups([2.0, 1.0, 2.0 + 1e-14], 3)
+    >>> values.tolist(), group.tolist()
+    ([1.0, 2.0], [1, 0, 1])
+    """
+    k = np.broadcast_to(np.asarray(stiffness, dtype=float), (n,))
+    _, first, group = np.unique(np.array([float(f"{v:.12g}") for v in k]), return_index=True, return_inverse=True)
+    return k[first], group                 # each group's value as given (its first member's)
+
+
 def ogden_terms_text(mus: Sequence[float], alphas: Sequence[float]) -> str:
     """Human-readable list of terms for comment lines."""
     return "; ".join(f"mu{i + 1}={m:.6g} Pa, alpha{i + 1}={a:.6g}"

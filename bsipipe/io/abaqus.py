@@ -44,6 +44,7 @@ from bsipipe.io._fe_material import (
     number,
     ogden_terms_text,
     prepare_material,
+    stiffness_groups,
     unit_system,
 )
 
@@ -194,15 +195,36 @@ def abaqus_amplitude(name: str, time, value, *, time_kind: str = "STEP TIME") ->
     return "\n".join([head, *_lines_of(list(flat))]) + "\n"
 
 
-def abaqus_springa(element_ids: Sequence[int], node_pairs, stiffness: float, elset: str) -> str:
+def abaqus_springa(element_ids: Sequence[int], node_pairs, stiffness, elset: str) -> str:
     """Axial springs: ``*ELEMENT, TYPE=SPRINGA`` (``id, n1, n2`` a line) and their
     ``*SPRING, ELSET=`` card.
 
     For ``SPRINGA`` the card's first data line (the degrees of freedom of ``SPRING1/2``) is
-    left blank, the second holds the stiffness (force per length, deck units).
+    left blank, the second holds the stiffness (force per length, deck units).  ``stiffness``
+    is one value, or one per spring: springs of equal stiffness then share an element set
+    ``{elset}_K{j}`` and its ``*SPRING`` card, and ``elset`` holds them all.
     """
-    head = abaqus_elements("SPRINGA", element_ids, node_pairs, elset=elset)
-    return head + "\n".join([f"*SPRING, ELSET={elset}", "", number(stiffness)]) + "\n"
+    def real(v) -> str:
+        # with a decimal point: CalculiX takes a data line of whole numbers after *SPRING for
+        # the degrees of freedom (SPRING1/2), then finds no stiffness ("card without data")
+        s = number(v)
+        return s if any(c in s for c in ".eEnN") else s + "."
+
+    values, group = stiffness_groups(stiffness, len(element_ids))
+    if len(values) == 1:
+        head = abaqus_elements("SPRINGA", element_ids, node_pairs, elset=elset)
+        return head + "\n".join([f"*SPRING, ELSET={elset}", "", real(values[0])]) + "\n"
+    ids, pairs = np.asarray(element_ids), np.asarray(node_pairs)
+    out, names = [], []
+    for j, v in enumerate(values):
+        sel = group == j
+        name = f"{elset}_K{j + 1}"
+        names.append(name)
+        out.append(abaqus_elements("SPRINGA", ids[sel], pairs[sel], elset=name))
+        out.append("\n".join([f"*SPRING, ELSET={name}", "", real(v)]) + "\n")
+    out.append(f"*ELSET, ELSET={elset}\n" + "\n".join(", ".join(names[i:i + 8]) for i in range(0, len(names), 8))
+               + "\n")
+    return "".join(out)
 
 
 def abaqus_boundary(nset: str, dofs: Sequence[int], values: Sequence[float] | None = None,
@@ -230,7 +252,7 @@ def abaqus_equations(rows) -> str:
 
 def abaqus_indentation_deck(*, comments: Sequence[str], node_ids, node_xyz, blocks, nsets,
                             material_card: str, material_name: str, spring_ids, spring_pairs,
-                            skull_ids, skull_xyz, spring_stiffness: float, axis, amplitude_time,
+                            skull_ids, skull_xyz, spring_stiffness, axis, amplitude_time,
                             amplitude_value, initial_increment: float, max_increment: float,
                             anchor_equations=None, step_ends=None, print_nsets: Sequence[str] = (),
                             visco_cetol: float | None = None,

@@ -37,6 +37,7 @@ from bsipipe.io._fe_material import (
     number,
     ogden_terms_text,
     prepare_material,
+    stiffness_groups,
     unit_system,
 )
 
@@ -131,7 +132,7 @@ def febio_loadcurve(parent: ET.Element, lc_id: int, time, value, name: str = "in
 
 
 def febio_indentation_model(*, comments, node_ids, node_xyz, blocks, material_xml: str, anchor_ids, anchor_xyz,
-                            spring_pairs, spring_stiffness: float, indentor_nodes, axis, curve_time,
+                            spring_pairs, spring_stiffness, indentor_nodes, axis, curve_time,
                             curve_value, time_steps: int, step_size: float, dt_max: float) -> str:
     """A complete FEBio 4 model (``febio_spec version="4.0"``) of the in situ indentation,
     every number already in the model's units.
@@ -140,7 +141,8 @@ def febio_indentation_model(*, comments, node_ids, node_xyz, blocks, material_xm
     type C3D8/C3D4, element ids, connectivity)``), the skull nodes, node sets ``indentor`` and
     ``skull``, the ``DiscreteSet`` ``interface`` (brain node, skull node); the material of
     ``material_xml`` (:func:`febio_material`'s document) on the solid domain; ``linear
-    spring`` discrete material of stiffness ``spring_stiffness`` on the interface set;
+    spring`` discrete material of stiffness ``spring_stiffness`` on the interface set (one
+    value, or one per spring: a set ``interface_k{j}`` and its material per distinct value);
     ``zero displacement`` on the skull, ``prescribed displacement`` of the indentor's nodes
     ``u = axis * curve(t)`` component by component (load controller 1); a static analysis
     of ``time_steps`` x ``step_size`` with automatic time stepping up to ``dt_max``.
@@ -179,9 +181,13 @@ def febio_indentation_model(*, comments, node_ids, node_xyz, blocks, material_xm
             ET.SubElement(el, "elem", id=str(int(e))).text = ",".join(str(int(v)) for v in row[:nn])
     ET.SubElement(mesh, "NodeSet", name="indentor").text = ",".join(str(int(v)) for v in indentor_nodes)
     ET.SubElement(mesh, "NodeSet", name="skull").text = ",".join(str(int(v)) for v in anchor_ids)
-    dset = ET.SubElement(mesh, "DiscreteSet", name="interface")
-    for a, b in np.asarray(spring_pairs):
-        ET.SubElement(dset, "delem").text = f"{int(a)},{int(b)}"
+    values, group = stiffness_groups(spring_stiffness, len(spring_pairs))
+    set_names = ["interface"] if len(values) == 1 else [f"interface_k{j + 1}" for j in range(len(values))]
+    pairs = np.asarray(spring_pairs)
+    for j, name in enumerate(set_names):
+        dset = ET.SubElement(mesh, "DiscreteSet", name=name)
+        for a, b in pairs[group == j]:
+            ET.SubElement(dset, "delem").text = f"{int(a)},{int(b)}"
     domains = ET.SubElement(root, "MeshDomains")
     for k in range(len(blocks)):
         ET.SubElement(domains, "SolidDomain", name="brain" if k == 0 else f"brain{k + 1}", mat=mat_name)
@@ -196,9 +202,11 @@ def febio_indentation_model(*, comments, node_ids, node_xyz, blocks, material_xm
         ET.SubElement(bc, "value", lc="1").text = number(a)
         ET.SubElement(bc, "relative").text = "0"
     discrete = ET.SubElement(root, "Discrete")
-    dmat = ET.SubElement(discrete, "discrete_material", id="1", name="interface", type="linear spring")
-    _param(dmat, "E", spring_stiffness)
-    ET.SubElement(discrete, "discrete", dmat="1", discrete_set="interface")
+    for j, (name, v) in enumerate(zip(set_names, values)):
+        dmat = ET.SubElement(discrete, "discrete_material", id=str(j + 1), name=name, type="linear spring")
+        _param(dmat, "E", float(v))
+    for j, name in enumerate(set_names):
+        ET.SubElement(discrete, "discrete", dmat=str(j + 1), discrete_set=name)
     febio_loadcurve(ET.SubElement(root, "LoadData"), 1, curve_time, curve_value)
     output = ET.SubElement(root, "Output")
     plot = ET.SubElement(output, "plotfile", type="febio")

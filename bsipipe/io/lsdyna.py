@@ -275,7 +275,7 @@ def lsdyna_curve(lcid: int, abscissa, ordinate, title: str | None = None) -> str
     return "\n".join(lines) + "\n"
 
 
-def lsdyna_discrete_springs(element_ids, node_pairs, normals, stiffness: float, *, pid: int, secid: int,
+def lsdyna_discrete_springs(element_ids, node_pairs, normals, stiffness, *, pid: int, secid: int,
                             mid: int, first_vid: int = 1, title: str = "brain-skull interface",
                             fixed_direction: bool = True) -> str:
     """Linear springs between node pairs, each acting along its own fixed direction (or,
@@ -285,11 +285,16 @@ def lsdyna_discrete_springs(element_ids, node_pairs, normals, stiffness: float, 
     ``*PART``, one ``*DEFINE_SD_ORIENTATION`` per spring (``IOP = 0``: deflection measured and
     force applied along the fixed vector, the interface normal; none when not
     ``fixed_direction``) and ``*ELEMENT_DISCRETE``
-    (``EID PID N1 N2 VID S PF OFFSET``; 8/8/8/8/8/16/8/16 columns).
+    (``EID PID N1 N2 VID S PF OFFSET``; 8/8/8/8/8/16/8/16 columns).  ``stiffness``: one value,
+    or one per spring: the material then holds the largest and each element's scale factor
+    ``S`` its share (LS-DYNA scales the spring's force by ``S``).
     """
     normals = np.asarray(normals, dtype=float)
+    k = np.broadcast_to(np.asarray(stiffness, dtype=float), (len(element_ids),))
+    k_mat = float(k.max()) if len(k) else float(np.asarray(stiffness, dtype=float).max())
+    scale = k / k_mat if k_mat > 0 else np.ones(len(k))
     lines = ["*MAT_SPRING_ELASTIC_TITLE", title[:80], "$#     mid         k",
-             _fixed([int(mid), float(stiffness)], (10, 10)),
+             _fixed([int(mid), k_mat], (10, 10)),
              "*SECTION_DISCRETE_TITLE", title[:80],
              "$#   secid       dro        kd        v0        cl        fd",
              _fixed([int(secid), 0, 0.0, 0.0, 0.0, 0.0], (10,) * 6),
@@ -303,13 +308,13 @@ def lsdyna_discrete_springs(element_ids, node_pairs, normals, stiffness: float, 
     lines += ["*ELEMENT_DISCRETE", "$#   eid     pid      n1      n2     vid               s      pf          offset"]
     for k, (e, (a, b)) in enumerate(zip(element_ids, np.asarray(node_pairs))):
         vid = int(first_vid + k) if fixed_direction else 0
-        lines.append(_fixed([int(e), int(pid), int(a), int(b), vid, 1.0], (8, 8, 8, 8, 8, 16)))
+        lines.append(_fixed([int(e), int(pid), int(a), int(b), vid, float(scale[k])], (8, 8, 8, 8, 8, 16)))
     return "\n".join(lines) + "\n"
 
 
 def lsdyna_indentation_deck(*, comments: Sequence[str], node_ids, node_xyz, blocks, material_card: str,
                             mid: int, anchor_ids, anchor_xyz, spring_ids, spring_pairs, spring_normals,
-                            spring_stiffness: float, indentor_nodes, axis, curve_time, curve_value,
+                            spring_stiffness, indentor_nodes, axis, curve_time, curve_value,
                             end_time: float, dt_initial: float, dt_max: float, output_dt: float,
                             element_formulation: int = 2, fixed_direction: bool = True) -> str:
     """A complete LS-DYNA keyword deck (implicit, static) of the in situ indentation, every
