@@ -36,8 +36,8 @@ def crossing_sequence(n: int = 40, size: int = 160, seed: int = 0):
 
 def test_crossing_markers_keep_their_names():
     """Constant-velocity prediction and global assignment: zero identity swaps, every found
-    position on its own marker, the merged frames reported (lost / ambiguous), and each
-    marker found again right after."""
+    position on its own marker, the merged frames reported (merged, lost or ambiguous), and
+    each marker found again right after."""
     frames, truth = crossing_sequence()
     seeds = {"A": truth[0, 0] + [1.0, -0.8], "B": truth[0, 1] + [-0.7, 1.0], "C": truth[0, 2] + [0.5, 0.5]}
     res = track_view(frames, seeds, 4.0, "dark", roi="none")
@@ -57,12 +57,41 @@ def test_crossing_markers_keep_their_names():
     print("events:", [(e["frame"], e["marker"], e["kind"]) for e in res.events])
     assert swaps == 0
     kinds = {e["kind"] for e in res.events}
-    assert kinds & {"lost", "ambiguous"}          # the crossing is reported, not hidden
+    assert kinds & {"lost", "ambiguous", "merged"}          # the crossing is reported, not hidden
     for e in res.events:
-        if e["kind"] == "lost":
+        if e["kind"] in ("lost", "merged"):
             back = [f for f in res.events if f["kind"] == "refound" and f["marker"] == e["marker"]
                     and f["frame"] > e["frame"]]
-            assert back and back[0]["frame"] - e["frame"] <= 3
+            # found again right after a loss, and once the merged images part
+            assert back and back[0]["frame"] - e["frame"] <= (3 if e["kind"] == "lost" else 10)
+
+
+@pytest.mark.parametrize("miss_px", [1.0, 2.0, 3.0])
+def test_slow_markers_passing_close_keep_their_names(miss_px):
+    """Two 4 px beads at right angles, 0.5 px per frame each, passing ``miss_px`` apart (the
+    probe's case, where their images merge for several frames): the merged image's centre had
+    been taken as a measurement, which turned both tracks onto one path, and they parted
+    swapped for the rest of the sequence (about 95 positions each, up to 69 px off, status
+    found).  Now neither is measured while merged (status ``merged``, a ``merged`` event),
+    both move on at their velocities from before, and each takes its own image where they
+    part: no position off its marker by more than 1 px."""
+    n, size = 60, 120
+    rng = np.random.default_rng(7)
+    t = np.arange(n, dtype=float)
+    A = np.column_stack([45 + 0.5 * t, 60 + 0 * t])
+    B = np.column_stack([60 + miss_px + 0 * t, 45 + 0.5 * t])          # closest at frame 30
+    truth = np.stack([A, B], axis=1)
+    field = RayField(bead_camera(size))
+    frames = [render_beads(truth[i], 4.0, size, rng, field=field) for i in range(n)]
+    res = track_view(frames, {"A": truth[0, 0], "B": truth[0, 1]}, 4.0, "dark", roi="none")
+    tab = res.table
+    for j, m in enumerate("AB"):
+        s = tab[tab["marker"] == m].sort_values("frame")
+        own = np.hypot(*(s[["x_px", "y_px"]].to_numpy() - truth[:, j]).T)
+        print(m, "found", int(s["found"].sum()), "max error", np.nanmax(own), s["status"].value_counts().to_dict())
+        assert np.nanmax(own) < 1.0
+        assert s["found"].sum() >= n - 12 and (s["status"] == "merged").any()
+    assert any(e["kind"] == "merged" for e in res.events)
 
 
 def test_nearest_neighbour_without_prediction_is_worse():

@@ -108,6 +108,11 @@ class TrackingConfig(StrictModel):
                                     "for in its own window")
     back_frames: int = Field(60, ge=0, description="automatic mode: a new marker is followed back through at most "
                              "this many frames (held in memory)")
+    merge_px: PositiveFloat | None = Field(None, description="two markers predicted closer than this whose images "
+                                           "merge are not measured until they part (status 'merged'); default "
+                                           "1.5 diameters")
+    merge_extrapolation_frames: int = Field(20, ge=0, description="merged markers move on at their velocities from "
+                                            "before for at most this many frames")
     second_look_k_sigma: PositiveFloat | None = Field(
         2.5, description="seeded mode: a marker nothing matched is looked for again in its gate with this window "
                          "threshold (robust sd), taken only if it passes min_snr and has the marker's own amplitude "

@@ -111,6 +111,13 @@ class TrackSettings:
     ``weak``.  ``frame_shift``: when the markers seen a frame before are missed or found off
     their predictions by a common offset, the offset of the whole picture is looked for
     (:func:`_frame_shift`) and every prediction moved by it (a ``frame-shift`` event).
+    ``merge_px`` (default ``1.5 d``): two markers predicted closer than this whose images
+    merge into one (one of them finds nothing in its gate but what a neighbour took) are
+    ``merged`` until they part: the merged image's centre is neither's, so neither is
+    measured (status ``merged``, position left empty) and both move on at their velocities
+    from before, for at most ``merge_extrapolation_frames`` frames; where they part, the
+    assignment on those predictions gives each its own image (a merged centre taken as a
+    measurement had turned both tracks onto one path, and they parted swapped).
     """
 
     gate_px: float | None = None
@@ -130,6 +137,8 @@ class TrackSettings:
     frame_shift: bool = True
     sweep_every_frames: int = 20
     back_frames: int = 60
+    merge_px: float | None = None
+    merge_extrapolation_frames: int = 20
 
     def resolved(self, d: float) -> dict:
         return {"gate_px": self.gate_px if self.gate_px is not None else max(3.0, 1.5 * d),
@@ -138,7 +147,8 @@ class TrackSettings:
                 "seed_radius_px": self.seed_radius_px if self.seed_radius_px is not None else max(4.0, 1.5 * d),
                 "ambiguity_px": self.ambiguity_px if self.ambiguity_px is not None else 0.5 * d,
                 "second_look_radius_px": (self.second_look_radius_px if self.second_look_radius_px is not None
-                                          else max(1.0, 0.25 * d))}
+                                          else max(1.0, 0.25 * d)),
+                "merge_px": self.merge_px if self.merge_px is not None else 1.5 * d}
 
 
 @dataclass
@@ -152,6 +162,8 @@ class _Marker:
     amps: list = field(default_factory=list)
     sigmas: list = field(default_factory=list)
     ended: bool = False
+    merged_with: tuple = ()          # names of the markers whose image this one's merged with
+    merged_since: int | None = None
     amp_median: float = np.nan
     sigma_median: float = np.nan
     _amps_sorted: list = field(default_factory=list, repr=False)
@@ -365,7 +377,8 @@ def track_view(frames: Iterable, seeds: pd.DataFrame | dict | None, diameter_px:
 
 def _predictions(markers: list[_Marker], f: int, S: dict, settings: TrackSettings):
     """Each marker's predicted position in frame ``f`` and its gate radius."""
-    pred = np.array([m.predict(f, settings.motion, settings.max_extrapolation_frames) for m in markers])
+    pred = np.array([m.predict(f, settings.motion, settings.merge_extrapolation_frames if m.merged_with
+                               else settings.max_extrapolation_frames) for m in markers])
     gates = np.array([m.gate(f, S["gate_px"], S["gate_growth_px"], S["max_gate_px"]) for m in markers])
     return pred.reshape(-1, 2), gates
 
@@ -435,17 +448,23 @@ def _search_frame(img, f: int, live: list[_Marker], pred, gates, diameter_px: fl
         events.append({"view": view, "frame": f, "marker": live[j].name, "kind": "ambiguous",
                        "other": live[i].name, "detail": "the two markers could be matched the other way round"})
     nm = len(live)
+    merged = _merged(f, live, pred, match, d2, cand, S["merge_px"], diameter_px, settings, view, events)
+    if merged.any():
+        match = np.where(merged, -1, match)
     hit = match >= 0
     val = {}
     for name in ("x_px", "y_px", "snr", "amplitude", "area_px", "sigma_px"):
         arr = np.full(nm, np.nan)
         arr[hit] = cand[name][match[hit]]
         val[name] = arr
-    status = ["lost"] * nm
+    status = ["merged" if mg else "lost" for mg in merged]
     xs, ys, amps, sigs = (val[c].tolist() for c in ("x_px", "y_px", "amplitude", "sigma_px"))
     for i, m in enumerate(live):
         j = match[i]
-        if j < 0:
+        if j < 0 and merged[i]:
+            if m.lost_since is None:
+                m.lost_since = f
+        elif j < 0:
             if m.lost_since is None:
                 m.lost_since = f
                 in_gate = np.flatnonzero(np.isfinite(d2[i])) if d2.size else []
@@ -477,6 +496,67 @@ def _search_frame(img, f: int, live: list[_Marker], pred, gates, diameter_px: fl
     val["pred"] = np.asarray(pred, float).reshape(nm, 2)
     val["status"] = status
     return val
+
+
+def _merged(f: int, live: list[_Marker], pred: np.ndarray, match: np.ndarray, d2: np.ndarray, cand: dict,
+            merge_px: float, diameter_px: float, settings: TrackSettings, view: str, events: list[dict]) -> np.ndarray:
+    """Which markers' images are merged with a neighbour's in frame ``f`` (n,) bool, and each
+    marker's merge state updated (see :class:`TrackSettings` ``merge_px``).
+
+    A merge starts where a marker measured a frame before is not matched, another marker's
+    prediction is within ``merge_px`` of its own, and a candidate lies within ``merge_px`` of
+    both predictions (the one image of both, taken by the other marker, or by neither when
+    its size or depth are no single marker's).
+    It lasts, for the markers in it, until each is matched to a candidate of its own at least
+    a diameter from the others' (they have parted), or ``merge_extrapolation_frames`` frames
+    have passed (then they are tracked as before)."""
+    n = len(live)
+    out = np.zeros(n, bool)
+    if n < 2:
+        return out
+    P = np.asarray(pred, float).reshape(n, 2)
+    close = ((P[:, None, :] - P[None, :, :]) ** 2).sum(axis=-1) < merge_px ** 2
+    np.fill_diagonal(close, False)
+    idx = {m.name: i for i, m in enumerate(live)}
+    # merges that go on: until every marker in one holds a candidate of its own, apart
+    cxy = np.column_stack([np.asarray(cand["x_px"], float), np.asarray(cand["y_px"], float)]).reshape(-1, 2)
+    for i, m in enumerate(live):
+        if not m.merged_with:
+            continue
+        group = [i] + [idx[o] for o in m.merged_with if o in idx]
+        own = all(match[k] >= 0 for k in group) and len({int(match[k]) for k in group}) == len(group)
+        apart = own and all(np.hypot(*(cxy[match[a]] - cxy[match[b]])) >= diameter_px
+                            for a in group for b in group if a < b)
+        if apart or abs(f - m.merged_since) > settings.merge_extrapolation_frames:
+            m.merged_with, m.merged_since = (), None
+        else:
+            out[i] = True
+    # merges that start: a marker just seen, not matched, beside a close neighbour with one
+    # image near both
+    near = ((cxy[None, :, :] - P[:, None, :]) ** 2).sum(axis=-1) < merge_px ** 2 if len(cxy) else \
+        np.zeros((n, 0), bool)
+
+    def recent(m):
+        return m.lost_since is None or m.lost_since >= f - 1 or m.frame >= f - 2
+
+    for i, m in enumerate(live):
+        if match[i] >= 0 or out[i] or not recent(m):
+            continue
+        took = [j for j in np.flatnonzero(close[i]) if recent(live[j]) and (near[i] & near[j]).any()]
+        if not took:
+            continue
+        group = [i] + took
+        for k in group:
+            mk = live[k]
+            others = tuple(live[o].name for o in group if o != k)
+            if not mk.merged_with:
+                mk.merged_since = f
+                events.append({"view": view, "frame": f, "marker": mk.name, "kind": "merged", "other": ", ".join(others),
+                               "detail": "passing close: one image for both; left empty, each moves on at its "
+                                         "velocity from before until they part"})
+            mk.merged_with = tuple(dict.fromkeys(mk.merged_with + others))
+            out[k] = True
+    return out
 
 
 def _not_in_objects(img, diameter_px: float, live: list[_Marker], cxy: np.ndarray, compat: np.ndarray,
