@@ -582,3 +582,35 @@ def test_a_view_mirrored_or_turned_against_the_calibration_is_named(view, turn):
           f"{r['orientation']}")
     assert r["view"] == view and r["orientation"] == turn
     assert r["median_gap_mm"] < 0.01 < r["median_gap_as_is_mm"]
+
+
+@pytest.mark.parametrize("slow", ["cam1", "cam2"])
+def test_views_at_different_frame_rates_pair_by_time(slow):
+    """One view recorded at half the other's frame rate, both with time stamps (a DICOM or a
+    video of each C-arm at its own rate): frames had been paired by number, so 3-D points
+    covered only the first half of the time both views span (the probe: 1128 of 2216 points).
+    The second view's tracks are now interpolated at the first view's frame times: every frame
+    of the first view within the second's time span has its points, as accurate as at a
+    common rate."""
+    cams = two_carms()
+    V = views_from_cameras(cams)
+    tab, pos = _moving_tracks(cams, offset_s=0.0, seed=5)
+    half = tab[(tab["view"] == slow) & (tab["frame"] % 2 == 0)].assign(frame=lambda t: t["frame"] // 2)
+    cut = pd.concat([tab[tab["view"] != slow], half], ignore_index=True)
+    d = stereo_data(cut, (V["cam1"], V["cam2"]))
+    loop, fit, _ = close_stereo_loop(d)
+    p = fit.points.dropna(subset=["x_mm"])
+    t = p["time_s"].to_numpy()
+    X = pos(t)
+    truth = X[np.arange(len(p)), p["marker"].str[1:].astype(int).to_numpy() - 1]
+    err = np.linalg.norm(p[["x_mm", "y_mm", "z_mm"]].to_numpy() - truth, axis=1)
+    _, fit0, _ = close_stereo_loop(stereo_data(tab, (V["cam1"], V["cam2"])))
+    p0 = fit0.points.dropna(subset=["x_mm"])
+    X0 = pos(p0["time_s"].to_numpy())
+    e0 = np.linalg.norm(p0[["x_mm", "y_mm", "z_mm"]].to_numpy()
+                        - X0[np.arange(len(p0)), p0["marker"].str[1:].astype(int).to_numpy() - 1], axis=1)
+    rms, rms0 = float(np.sqrt(np.mean(err ** 2))), float(np.sqrt(np.mean(e0 ** 2)))
+    print(slow, len(p), t.max(), rms, len(p0), rms0, [s["effect"] for s in loop["steps"]])
+    assert t.max() >= 7.8                                   # the whole time both views cover (0-7.9 s)
+    assert len(p) >= (0.97 if slow == "cam2" else 0.47) * len(p0)
+    assert rms < 1.5 * rms0

@@ -634,8 +634,33 @@ def _point_sds(points3d: pd.DataFrame, table: pd.DataFrame, vpair, pair) -> None
                                  ("_raw", ("x_mm_raw", "y_mm_raw", "z_mm_raw"), "sd_px")):
         out = np.full((len(points3d), 3), np.nan)
         if two.any():
-            cov = point_covariance(vpair, points3d.loc[two, list(cols)].to_numpy(float),
-                                   [t[sd_col].reindex(idx).to_numpy(float) for t in per_view])
+            sds = [t[sd_col].reindex(idx).to_numpy(float, copy=True) for t in per_view]
+            periods = [float(np.nanmedian(np.diff(np.unique(t["time_s"].dropna().to_numpy(float)))))
+                       if t["time_s"].notna().sum() > 1 else np.nan for t in per_view]
+            other_rate = bool(np.all(np.isfinite(periods)) and abs(periods[0] / periods[1] - 1.0) > 0.01)
+            tq = points3d.loc[two, "time_s"].to_numpy(float) if other_rate and "time_s" in points3d else None
+            for t, sd in zip(per_view, sds):
+                # a view at its own frame rate was interpolated to the other's frame times (its
+                # frame of the same number is another time, or none): its sd at the point's
+                # time, from its own frames either side (linear)
+                if tq is None or not t["time_s"].notna().any():
+                    continue
+                row_t = t["time_s"].reindex(idx).to_numpy(float)
+                gap = ~np.isfinite(sd) | ~(np.abs(row_t - tq) <= 1e-6 * max(1.0, float(np.nanmax(np.abs(tq)))))
+                gap &= np.isfinite(tq)
+                if gap.any():
+                    names = points3d.loc[two, "marker"].to_numpy()
+                    for m in pd.unique(names[gap]):
+                        own = t.xs(m, level="marker") if m in t.index.get_level_values("marker") else None
+                        if own is None:
+                            continue
+                        own = own[np.isfinite(own["time_s"]) & np.isfinite(own[sd_col])].sort_values("time_s")
+                        sel = gap & (names == m) & np.isfinite(tq)
+                        if len(own) >= 2 and sel.any():
+                            tt = own["time_s"].to_numpy(float)
+                            inside = sel & (tq >= tt[0]) & (tq <= tt[-1])
+                            sd[inside] = np.interp(tq[inside], tt, own[sd_col].to_numpy(float))
+            cov = point_covariance(vpair, points3d.loc[two, list(cols)].to_numpy(float), sds)
             out[two] = np.sqrt(np.einsum("nkk->nk", cov))
         for k, a in enumerate("xyz"):
             points3d[f"sd_{a}_mm{suffix}"] = out[:, k]
@@ -988,7 +1013,9 @@ def _sequence_warnings(table: pd.DataFrame, events: list[dict], cfg, views, info
             log, markers={v: {m: {"found": k, "frames": n} for m, (k, n) in ms.items()} for v, ms in rare.items()}))
     counts = {v: info[v]["n_frames"] for v in views}
     last = {v: int(table.loc[table["view"] == v, "frame"].max()) for v in views}
-    if len(set(counts.values())) > 1 and len(set(last.values())) > 1:
+    rates = _frame_rates(table)
+    other_rates = len(rates) > 1 and max(rates.values()) > 1.01 * min(rates.values())
+    if len(set(counts.values())) > 1 and len(set(last.values())) > 1 and not other_rates:
         # e.g. a video cut short within its header's tolerance, or a frame file missing: the
         # views' frames are paired by index (and time stamps), so the shorter view's end is
         # where stereo stops
@@ -997,8 +1024,7 @@ def _sequence_warnings(table: pd.DataFrame, events: list[dict], cfg, views, info
                            + ", ".join(f"{v} {n}" for v, n in counts.items())
                            + "); frames are paired by index and time, the longer views' last frames "
                              "have no partner", log, n_frames=counts))
-    rates = _frame_rates(table)
-    if len(rates) > 1 and max(rates.values()) > 1.01 * min(rates.values()):
+    if other_rates:
         # time stamps from the sources (video, DICOM) at different rates: frame k of one view
         # is not taken at frame k's time in the other.  Stereo pairs frames by index; the
         # loop's view-time-offset interpolates one view's tracks to the other's times (offset
@@ -1007,9 +1033,9 @@ def _sequence_warnings(table: pd.DataFrame, events: list[dict], cfg, views, info
             "frame-rate-mismatch",
             "track: the views' time stamps give different frame rates ("
             + ", ".join(f"{v} {r:.3g}" for v, r in rates.items())
-            + " frames/s): frames are paired by index, and only where the loop takes view-time-offset are "
-              "one view's tracks interpolated to the other's times; 3-D points exist for the frame numbers "
-              "both views hold, not for the whole of the longer recording", log, frames_per_s=rates))
+            + " frames/s): frame k of one is not taken with frame k of the other, so the second view's tracks are "
+              "interpolated (PCHIP) at the first view's frame times for the 3-D points, over the whole time both "
+              "views cover", log, frames_per_s=rates))
     # where each view's times come from: --fps is only for sources without time stamps
     by_view = table.groupby("view", sort=False)
     timed, n_frames = by_view["time_s"].count() > 0, by_view["frame"].nunique()

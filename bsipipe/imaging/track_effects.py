@@ -202,10 +202,47 @@ def stereo_data(table: pd.DataFrame, views: tuple[ViewGeometry, ViewGeometry]) -
     markers = [m for m in ma if m in mb]
     fa = np.sort(pd.unique(cols["frame"][in_a]))
     fb = np.sort(pd.unique(cols["frame"][in_b]))
+    col_a = {k: v[in_a] for k, v in cols.items()}
+    col_b = {k: v[in_b] for k, v in cols.items()}
+    resampled = _other_rate(col_a, col_b, fa, fb, markers)
+    if resampled is not None:
+        xa, ta, sa = _view_arrays(col_a, markers, fa)
+        xb, sb = resampled(ta)
+        return StereoData(views, fa, markers, xa, xb, ta, ta.copy(), sa, sb)
     frames = fa[np.isin(fa, fb)] if len(fb) else fa
-    xa, ta, sa = _view_arrays({k: v[in_a] for k, v in cols.items()}, markers, frames)
-    xb, tb, sb = _view_arrays({k: v[in_b] for k, v in cols.items()}, markers, frames)
+    xa, ta, sa = _view_arrays(col_a, markers, frames)
+    xb, tb, sb = _view_arrays(col_b, markers, frames)
     return StereoData(views, frames, markers, xa, xb, ta, tb, sa, sb)
+
+
+def _other_rate(col_a: dict, col_b: dict, fa: np.ndarray, fb: np.ndarray, markers: list[str]):
+    """Where both views' frames carry times at different rates (median intervals more than
+    1 % apart: a DICOM, TIFF or video of each C-arm at its own frame rate), frame k of one is
+    not taken with frame k of the other, and the frames both number cover only the shorter
+    count: B's tracks are then interpolated (PCHIP through each run of found frames, as the
+    clock effects do) at every one of A's frame times.  Returns ``at(ta) -> (xb, suspect_b)``
+    on A's frames, or None where the rates agree (frames pair by number)."""
+    def period(col, frames):
+        t = pd.Series(col["time_s"]).groupby(col["frame"]).first().reindex(frames).to_numpy(float)
+        d = np.diff(t[np.isfinite(t)])
+        return float(np.median(d)) if len(d) else np.nan
+
+    pa, pb = period(col_a, fa), period(col_b, fb)
+    if not (np.isfinite(pa) and np.isfinite(pb) and pa > 0 and pb > 0) or abs(pa / pb - 1.0) <= 0.01:
+        return None
+    xb_own, tb_own, sb_own = _view_arrays(col_b, markers, fb)
+
+    def at(ta):
+        xb = _Interp(tb_own, xb_own)(ta)
+        # a point interpolated within one of B's periods of a suspect B sample is suspect
+        sb = np.zeros(xb.shape[:2], bool)
+        for j in range(sb.shape[1]):
+            ts = tb_own[sb_own[:, j] & np.isfinite(tb_own)]
+            if len(ts):
+                sb[:, j] = np.abs(ta[:, None] - ts[None, :]).min(axis=1) < pb
+        return xb, sb & np.isfinite(xb).all(axis=2)
+
+    return at
 
 
 # --- the fit of one spec ---------------------------------------------------------------------
