@@ -1504,12 +1504,58 @@ def find_captures(d: StereoData, xa: np.ndarray, xb: np.ndarray, shifts: tuple |
     return xa, xb, out
 
 
+def _one_sided(g, da, db, base, i: int, j: int, s: float, min_ratio: float, min_noise_factor: float):
+    """Per frame, for a pair (i, j) where A sees one of the two and B both: whether B's other
+    name fits A's marker far better (``yes``) or B's own does within the noise (``no``)."""
+    yes = np.zeros(len(g), bool)
+    no = np.zeros(len(g), bool)
+    for a, b in ((i, j), (j, i)):
+        own = np.abs(g[:, a])
+        other = np.abs(_gaps_from_dirs(da[:, a], db[:, b], base))
+        only = np.isfinite(own) & np.isfinite(other) & ~np.isfinite(g[:, b])
+        yes |= only & (other < min_ratio * own) & (own > 0.5 * min_noise_factor * s)
+        no |= only & (own < 3.0 * s)
+    return yes, no
+
+
+def _swap_runs(hit: np.ndarray, one_yes: np.ndarray, one_no: np.ndarray, cur: np.ndarray, alt: np.ndarray,
+               s: float) -> list[tuple[int, int]]:
+    """The frames of one swap: runs of two-sided evidence (``hit``) joined, with the frames
+    between them, wherever no frame between shows the names right (both gaps within 3 sd of
+    the noise as they are, or the one-sided test ``one_no``): a tracker keeps a name through
+    the frames a marker is hidden in one view, so B's names stay exchanged until something
+    shows them right.  A run then reaches on, either side, over frames of one-sided evidence
+    (``one_yes``) and frames that show nothing."""
+    F = len(hit)
+    right = (np.isfinite(cur) & (cur < 3.0 * s) & ~(np.isfinite(alt) & (alt < cur))) | one_no
+    out = []
+    for r0, r1 in zip(*_runs(hit)):
+        if out and not right[out[-1][1]:r0].any():
+            out[-1] = (out[-1][0], int(r1))
+        else:
+            out.append((int(r0), int(r1)))
+    grown = []
+    for r0, r1 in out:
+        while r0 > 0 and not right[r0 - 1] and (one_yes[r0 - 1] or not np.isfinite(cur[r0 - 1])):
+            r0 -= 1
+        while r1 < F and not right[r1] and (one_yes[r1] or not np.isfinite(cur[r1])):
+            r1 += 1
+        if grown and r0 <= grown[-1][1]:
+            grown[-1] = (grown[-1][0], max(grown[-1][1], r1))
+        else:
+            grown.append((r0, r1))
+    return grown
+
+
 def find_swaps(d: StereoData, xb: np.ndarray, min_ratio: float = 0.25, min_noise_factor: float = 10.0) -> list[dict]:
     """Runs of frames where exchanging two of B's marker names makes both gaps small.
 
     A pair (i, j) is swapped in a frame when ``|g(A_i,B_j)| + |g(A_j,B_i)|`` is below
     ``min_ratio`` times ``|g(A_i,B_i)| + |g(A_j,B_j)|`` and the latter exceeds
-    ``min_noise_factor`` robust sd of all gaps.
+    ``min_noise_factor`` robust sd of all gaps.  Such frames make one swap with the frames
+    between them that show nothing against it, and it reaches on over frames where A sees
+    one of the two and B's other name fits it (:func:`_swap_runs`): names exchanged in B's
+    seeds stay exchanged through the frames one marker is hidden in A.
     """
     F, M = d.xa.shape[:2]
     # each view's rays are found once (undistortion is the costly part); a swap of two of
@@ -1535,7 +1581,8 @@ def find_swaps(d: StereoData, xb: np.ndarray, min_ratio: float = 0.25, min_noise
         for k in np.flatnonzero(hit_all.any(axis=0)):
             i, j = int(i_[k]), int(j_[k])
             cur, alt, hit = cur_all[:, k], alt_all[:, k], hit_all[:, k]
-            for r0, r1 in zip(*_runs(hit)):
+            for r0, r1 in _swap_runs(hit, *_one_sided(g, da, db, base, i, j, s, min_ratio, min_noise_factor),
+                                     cur, alt, s):
                 idx = np.arange(r0, r1)
                 out.append({"markers": [d.markers[i], d.markers[j]], "first_frame": int(d.frames[idx[0]]),
                             "last_frame": int(d.frames[idx[-1]]), "view": d.views[1].name,
