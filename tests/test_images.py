@@ -629,3 +629,27 @@ def test_frames_a_dicom_source_skipped_keep_their_times_numbers(tmp_path):
     fr = list(iter_frames(d))
     assert [f.index for f in fr] == [0, 1, 2, 4, 5]
     assert [f.time_s for f in fr] == pytest.approx([0.0, 0.5, 1.0, 2.0, 2.5])
+
+
+def test_a_thumbnail_that_sorts_first_is_named(tmp_path):
+    """A preview image of another size that sorts before the frames (``_preview.png``) had
+    made every later frame the odd one ("frame_0000.png: image is 64x48 px, expected 16x12
+    like _preview.png"), and ``track`` blamed the calibration or the seeds checked against
+    its size.  The first file is named when the files after it agree with each other."""
+    import cv2
+    from bsipipe.errors import InputError
+    from bsipipe.io.images import iter_frames
+    d = tmp_path / "cam1"
+    d.mkdir()
+    cv2.imwrite(str(d / "_preview.png"), np.full((12, 16), 100, np.uint8))
+    for k in range(3):
+        cv2.imwrite(str(d / f"frame_{k:04d}.png"), np.full((48, 64), 120 + k, np.uint8))
+    with pytest.raises(InputError) as e:
+        list(iter_frames(d))
+    assert "_preview.png" in str(e.value) and "the files after it 64x48 px" in str(e.value)
+    # a stray file of another size after the frames is still named by itself
+    (d / "_preview.png").unlink()
+    cv2.imwrite(str(d / "zz_stray.png"), np.full((12, 16), 100, np.uint8))
+    with pytest.raises(InputError) as e:
+        list(iter_frames(d))
+    assert "zz_stray.png" in str(e.value) and "expected 64x48 px" in str(e.value)

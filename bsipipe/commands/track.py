@@ -415,7 +415,7 @@ def _first_frames(views: dict, channel) -> tuple[dict, dict]:
     whose first frame was blank (:func:`~bsipipe.imaging.detect.is_blank`): view -> the frame
     used instead, the first of the next :data:`BLANK_LOOKAHEAD` with a picture (frame 0 when
     none has one)."""
-    from itertools import islice
+    from itertools import chain, islice
 
     from ..imaging.detect import is_blank
     from ..io.images import iter_frames
@@ -424,7 +424,11 @@ def _first_frames(views: dict, channel) -> tuple[dict, dict]:
         it = iter(iter_frames(p, channel=channel))
         fr = next(it, None)
         out[v] = None if fr is None else fr.image
+        # the second frame too: a first file of another size (a thumbnail that sorts first) is
+        # named as such here, before the calibration or the seeds are checked against it
+        second = next(it, None)
         if fr is not None and is_blank(fr.image):
+            it = chain([second], it) if second is not None else it
             for k, nxt in enumerate(islice(it, BLANK_LOOKAHEAD), start=1):
                 if not is_blank(nxt.image):
                     out[v], blank[v] = nxt.image, k

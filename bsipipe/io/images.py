@@ -898,18 +898,27 @@ def iter_frames(source: str | os.PathLike, *, dtype=None, channel: int | None = 
         log.debug("%s: DICOM series of %d files, in the order of %s", source, len(files), series.order)
     numbered = _frame_index_of(files, series)
     shape0 = None
-    first = None
+    first = first_path = None
     index = base = 0
+    n_files = 0
+    prev_f = None
     for f, (name, img, t, k) in _files_in_order(files, dtype, channel, hashes, int(workers)):
+        if f != prev_f:
+            n_files, prev_f = n_files + 1, f
         if k == 0:
             # a frame missing from the numbering (or skipped by a file's own times) keeps its index
             base = max(index, numbered[f]) if numbered is not None else index
         index = base + k
         if check_size:
             if shape0 is None:
-                shape0, dtype0, first = img.shape, img.dtype, name
+                shape0, dtype0, first, first_path = img.shape, img.dtype, name, f
             elif img.shape != shape0:
                 h, w = img.shape
+                if n_files == 2 and len(files) >= 3 and _header_size(files[2]) == (w, h):
+                    # the first file is the odd one (a thumbnail or preview that sorts first)
+                    raise InputError(f"image is {shape0[1]}x{shape0[0]} px, the files after it {w}x{h} px "
+                                     f"({Path(f).name}, {Path(files[2]).name}): a thumbnail or another image among "
+                                     "the frames? Move it out of the folder", path=first_path, frame=0)
                 raise InputError(
                     f"image is {w}x{h} px, expected {shape0[1]}x{shape0[0]} px like {first}",
                     path=f, frame=index)
@@ -918,6 +927,17 @@ def iter_frames(source: str | os.PathLike, *, dtype=None, channel: int | None = 
                                  path=f, frame=index)
         yield Frame(index, name, img, times[f] if times is not None else t)
         index += 1
+
+
+def _header_size(path) -> tuple[int, int] | None:
+    """An image file's (width, height) from its header (Pillow reads no pixels), None where
+    Pillow cannot tell."""
+    try:
+        from PIL import Image
+        with Image.open(path) as im:
+            return tuple(int(v) for v in im.size)
+    except Exception:  # noqa: BLE001 - only a hint for a message
+        return None
 
 
 def _depth(dtype) -> str:
