@@ -94,6 +94,32 @@ def test_slow_markers_passing_close_keep_their_names(miss_px):
     assert any(e["kind"] == "merged" for e in res.events)
 
 
+def test_seeds_clicked_off_alike_still_start_their_tracks():
+    """Every seed 6-8 px off its 4 px bead (clicks on a scaled display): within the seed
+    radius (6 px) one or two found a marker, the first frame was empty for the rest.  Where
+    most seeds find none, those are searched 2.5 times as far (the global assignment keeps
+    each on its own bead): every marker is found in the first frame, on its own bead."""
+    n, size = 6, 200
+    rng = np.random.default_rng(3)
+    truth = np.array([[40.0 + 30 * i, 60.0 + 25 * (i % 3)] for i in range(6)])
+    field = RayField(bead_camera(size))
+    frames = [render_beads(truth + [0.3 * k, 0.2 * k], 4.0, size, rng, field=field) for k in range(n)]
+    ang = rng.uniform(0, 2 * np.pi, len(truth))
+    off = np.column_stack([np.cos(ang), np.sin(ang)]) * rng.uniform(6.1, 7.9, (len(truth), 1))
+    seeds = {f"M{i}": truth[i] + off[i] for i in range(len(truth))}
+    res = track_view(frames, seeds, 4.0, "dark", roi="none")
+    t0 = res.table[res.table["frame"] == 0].set_index("marker")
+    for i in range(len(truth)):
+        assert t0.loc[f"M{i}", "found"], f"M{i}"
+        assert np.hypot(*(t0.loc[f"M{i}", ["x_px", "y_px"]].to_numpy(float) - truth[i])) < 0.5
+    # seeds within the radius are not searched further: a seed 9 px from the nearest bead
+    # among seeds on their beads finds nothing in the first frame
+    seeds2 = {f"M{i}": truth[i] for i in range(len(truth))}
+    seeds2["X"] = truth[0] + [0.0, 9.0]
+    res2 = track_view(frames, seeds2, 4.0, "dark", roi="none")
+    assert not res2.table[(res2.table["frame"] == 0) & (res2.table["marker"] == "X")]["found"].any()
+
+
 def test_nearest_neighbour_without_prediction_is_worse():
     """The same crossing with the seeds' method (static nearest neighbour, no prediction):
     the prediction is what keeps the names -- without it a marker is lost for longer or

@@ -885,6 +885,30 @@ def _check_seeds_found(table: pd.DataFrame, seed_df, together: list, info: dict,
                                   f"--diameter-px{hint}", path=path)
 
 
+def _seeds_far(table: pd.DataFrame, seed_df, per_view_d: dict, tk) -> list[dict]:
+    """A warning naming the seeds whose markers were found in the first frame farther from
+    them than the tracker's seed radius (where most seeds miss their markers, the first frame
+    searches further: clicks systematically off, say on a scaled display, still start the
+    tracks, and the user should know)."""
+    from ..quality import warning
+    first = table.loc[table.groupby("view")["frame"].transform("min") == table["frame"]]
+    first = first[first["found"].astype(bool)].set_index(["view", "marker"])
+    far = {}
+    for v, m, x, y in seed_df[["view", "marker", "x_px", "y_px"]].itertuples(index=False):
+        if (v, m) not in first.index:
+            continue
+        r0 = tk.resolved(per_view_d.get(v, 4.0))["seed_radius_px"]
+        d = float(np.hypot(first.loc[(v, m), "x_px"] - x, first.loc[(v, m), "y_px"] - y))
+        if d > r0:
+            far.setdefault(v, {})[m] = round(d, 2)
+    if not far:
+        return []
+    return [warning("seeds-far", "track: seeds farther from the markers found for them in the first frame than the "
+                    "seed radius (most seeds were off, so the first frame was searched further): "
+                    + "; ".join(f"{v}: " + ", ".join(f"{m} {d:g} px" for m, d in ms.items()) for v, ms in far.items())
+                    + "; check that each took its own marker (the overlay figure)", log, distances_px=far)]
+
+
 def _seed_warnings(seed_df, polarity: str, polarity_note: str, polarity_counts) -> list[dict]:
     """Warnings about the seeds and the markers' polarity, known before the tracks are."""
     from ..quality import warning
@@ -1430,6 +1454,8 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         raise ProcessingError("no marker was found in any frame (check --polarity and --diameter-px)",
                               path=next(iter(cfg.views.values())))
     warnings += _seed_warnings(seed_df, cfg.polarity, polarity_note, polarity_counts)
+    if seed_df is not None:
+        warnings += _seeds_far(table, seed_df, per_view_d, tk)
     table, more = _sequence_warnings(table, events, cfg, views, info, seed_df is not None)
     warnings += more
 

@@ -118,6 +118,11 @@ def diameter_without_seeds(first: np.ndarray, polarity: str, roi=None) -> tuple[
     return 4.0, "default 4 px (no --diameter-px, no seeds; no size tried finds 3 markers of SNR 6 or more)"
 
 
+#: Where most seeds find no marker within the diameter probe's reach, how many times as far
+#: they are searched (as the tracker's first frame does, ``track.SEED_REACH_FACTOR``).
+SEED_REACH = 2.5
+
+
 def diameter_from_seeds(first: np.ndarray, seeds: pd.DataFrame, polarity: str) -> tuple[float, str]:
     """Marker diameter from the seeds of one view, and a note: from the fitted Gaussian sigmas
     of the seeded markers in the first frame (:func:`diameter_from_sigmas`).
@@ -141,10 +146,20 @@ def diameter_from_seeds(first: np.ndarray, seeds: pd.DataFrame, polarity: str) -
         ok, s = found_at(d0, xy)
         if ok.any():
             break
+    far = ""
+    if 2 * ok.sum() < len(xy):
+        # most seeds find no marker within the probe's reach: clicks systematically off (a
+        # scaled display); the diameter is measured on what a wider search finds, not on the
+        # one or two seeds that happened to lie near a marker
+        r = refine_at(first, xy, d0, polarity, search_radius_px=SEED_REACH * max(6.0, 0.5 * d0), **PROBE)
+        ok2 = r["found"].to_numpy(bool) & np.isfinite(r["sigma_px"].to_numpy())
+        if ok2.sum() > ok.sum():
+            ok, s = ok2, r["sigma_px"].to_numpy()
+            far = f"; most seeds far from their markers, searched {SEED_REACH:g} x as far"
     if not ok.any():
         return 4.0, "default: no seeded marker measured in the first frame"
     d = diameter_from_sigmas(s[ok])
-    note = f"estimated from the seeds ({ok.sum()} of {len(xy)}; 2.5 x median fitted sigma)"
+    note = f"estimated from the seeds ({ok.sum()} of {len(xy)}; 2.5 x median fitted sigma{far})"
     hit, _ = found_at(d, xy)
     if hit.all():
         return d, note

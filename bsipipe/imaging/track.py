@@ -361,7 +361,7 @@ def track_view(frames: Iterable, seeds: pd.DataFrame | dict | None, diameter_px:
             fov_info = fov.to_dict() if fov is not None else {"found": False}
         if k == 0:
             pred = np.array([m.pos for m in markers]).reshape(-1, 2)
-            gates = np.full(len(markers), S["seed_radius_px"])
+            gates = _seed_gates(img, markers, pred, diameter_px, polarity, detection, fov, settings, S, view)
         else:
             pred, gates = _predictions(markers, f, S, settings)
         r = _search_frame(img, f, markers, pred, gates, diameter_px, polarity, detection, fov, settings, S,
@@ -373,6 +373,31 @@ def track_view(frames: Iterable, seeds: pd.DataFrame | dict | None, diameter_px:
         cols["status"].extend(r["status"])
         cols["pred"].append(r["pred"])
     return TrackResult(_seeded_table(view, names, cols), events, fov_info, {**settings.__dict__, **S})
+
+
+#: Where most seeds find no marker within ``seed_radius_px`` (clicks systematically off, e.g.
+#: on a scaled display), the seeds that find none are searched this many times as far.
+SEED_REACH_FACTOR = 2.5
+
+
+def _seed_gates(img, markers: list[_Marker], pred: np.ndarray, diameter_px: float, polarity, detection, fov,
+                settings: TrackSettings, S: dict, view: str) -> np.ndarray:
+    """The first frame's search radius per seed: ``seed_radius_px``, or, where more than half
+    the seeds find no marker within it (a trial search on copies of the markers), that times
+    :data:`SEED_REACH_FACTOR` for the seeds that found none (the global assignment keeps a
+    seed off a marker a nearer seed takes).  Seeds 6-8 px off 4 px beads had found 1 of 12:
+    the frame was empty and the diameter, from that one, too small to find the rest."""
+    import copy
+    r0 = S["seed_radius_px"]
+    gates = np.full(len(markers), r0)
+    if len(markers) < 2:
+        return gates
+    trial = _search_frame(img, 0, copy.deepcopy(markers), pred, gates, diameter_px, polarity, detection, fov,
+                          settings, S, view, [], second_look=False)
+    missed = ~np.asarray(trial["found"], bool)
+    if 2 * missed.sum() > len(markers):
+        gates[missed] = SEED_REACH_FACTOR * r0
+    return gates
 
 
 def _predictions(markers: list[_Marker], f: int, S: dict, settings: TrackSettings):
