@@ -569,3 +569,43 @@ def test_a_record_tared_on_a_preloaded_specimen(tmp_path):
         d = json.loads((tmp_path / case / "fit.json").read_text())
         assert abs(d["params"]["mu_pa"] / 720 - 1) < 0.02 and abs(d["params"]["alpha"] + 4.7) < 0.1, (case, d["params"])
         assert ("zeroed at the first sample" in d["inputs"][0]["force_baseline"]["source"]) == (case == "tared")
+
+
+def test_a_size_given_that_the_logs_metadata_contradicts_is_a_warning(tmp_path):
+    """--diameter-mm 20 --height-mm 10 for a log whose metadata says 18 x 12 mm: the options
+    win (as documented) and had been used without a word (mu 486 Pa, alpha -3.2 for 720 /
+    -4.7); a geometry-disagrees warning now names both sizes.  A size that agrees with the
+    metadata, or one the metadata does not state, gives none."""
+    path = tmp_path / "log.csv"
+    _preloaded_cyclic_csv(path, contact_mm=0.2, cycles=1, second_cycle_factor=1.0)
+    out = tmp_path / "a"
+    r = _invoke("fit-ogden", path, "--no-loop", "--diameter-mm", 20, "--height-mm", 10, "-o", out)
+    assert r.exit_code == 0, r.output
+    res = json.loads((out / "fit.json").read_text())
+    w = [x for x in res["warnings"] if x["code"] == "geometry-disagrees"]
+    assert len(w) == 1 and "diameter_mm 20 given, 18 mm" in w[0]["message"] and "height_mm 10 given, 12 mm" in w[0]["message"]
+    r = _invoke("fit-ogden", path, "--no-loop", "--diameter-mm", 18, "-o", tmp_path / "b")
+    assert r.exit_code == 0, r.output
+    res = json.loads((tmp_path / "b" / "fit.json").read_text())
+    assert not [x for x in res["warnings"] if x["code"] == "geometry-disagrees"]
+
+
+def test_a_tension_test_is_named_as_such(tmp_path):
+    """Columns Time, Extension, Load both rising, the force rising ever more slowly (a
+    tension test of a soft solid): read as compression (positive in compression), the fit had
+    failed with "did not converge: the maximum number of function evaluations is exceeded"
+    (exit 1, --no-loop) or "ran every modulus to zero" (with the loop).  It is now exit 2
+    naming the log and saying the record softens where compression of brain stiffens."""
+    t = np.arange(0.0, 150.0, 0.1)
+    x = t / 15.0                                            # 4 mm/min
+    f = np.where(x > 0.5, 0.2 * (1.0 - np.exp(-(x - 0.5) / 6.0)), 0.0)
+    f = f + 1e-3 * np.random.default_rng(2).standard_normal(len(t))
+    rows = [f"{a:.3f},{b:.5f},{c:.6f}" for a, b, c in zip(t, x, f)]
+    path = tmp_path / "tension.csv"
+    path.write_text("\n".join(["Dimensions : Diameter,18,mm", "Dimensions : Height,12,mm", "", "Time,Extension,Load",
+                               "(s),(mm),(N)", *rows]) + "\n")
+    for extra in (("--no-loop",), ()):
+        out = tmp_path / f"out{len(extra)}"
+        r = _invoke("fit-ogden", path, *extra, "-o", out)
+        assert r.exit_code == 2 and "tension.csv" in r.output and "looks like a tension test" in r.output, r.output
+        assert not out.exists()

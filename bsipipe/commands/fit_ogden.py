@@ -120,6 +120,9 @@ def _geometry(name: str, given: dict, logfile) -> tuple[dict, dict]:
         v = given[key]
         if v is not None:
             out[key], source[key] = float(v), "option or config"
+            meta = logfile.geometry.get(key, logfile.geometry.get("thickness_mm") if key == "height_mm" else None)
+            if meta is not None and abs(float(v) / float(meta) - 1.0) > GEOMETRY_DISAGREE:
+                source[key] += f" (the log's metadata says {float(meta):g} mm)"
         elif key in logfile.geometry:
             out[key], source[key] = float(logfile.geometry[key]), "log metadata"
         elif key == "height_mm" and "thickness_mm" in logfile.geometry:
@@ -140,6 +143,11 @@ def _geometry(name: str, given: dict, logfile) -> tuple[dict, dict]:
                          f"{' and '.join(missing)} in --config, or state it in the log's metadata",
                          path=name)
     return out, source
+
+
+#: Relative difference between a size given as an option (or config) and the log's own
+#: metadata beyond which a ``geometry-disagrees`` warning is raised (options win).
+GEOMETRY_DISAGREE = 0.02
 
 
 #: Least number of samples past the contact (and within max_strain) a log must hold to be fitted.
@@ -464,6 +472,58 @@ def _compliance_implausible(c_mm_per_n: float, data) -> list[dict]:
     return out
 
 
+def _softening_hint(data) -> str | None:
+    """Why a fit failed, where a log's force rises ever more slowly past the contact (the
+    second half of its travel adds less than 0.8 of the first's force per millimetre): brain
+    tissue in unconfined compression stiffens, so such a record is a tension test (or its
+    channels' signs read the wrong way), which the compression law cannot fit."""
+    for lg in data:
+        past = lg.displacement_mm > lg.contact_mm
+        x = lg.displacement_mm[past] - lg.contact_mm
+        f = np.abs(lg.force_n[past])
+        if len(x) < 20 or np.ptp(x) <= 0:
+            continue
+        half = x <= 0.5 * x.max()
+        if half.sum() < 5 or (~half).sum() < 5:
+            continue
+        k1 = np.polyfit(x[half], f[half], 1)[0]
+        k2 = np.polyfit(x[~half], f[~half], 1)[0]
+        if k1 > 0 and k2 < 0.8 * k1:
+            return (f"{lg.name}'s force rises ever more slowly past the contact (slope {k2:.3g} N/mm over the second "
+                    f"half of its travel, {k1:.3g} over the first): brain tissue in unconfined compression stiffens, "
+                    "so this looks like a tension test, or its extension or load read with the wrong sign "
+                    "(fit-ogden fits compression; name the columns, e.g. 'Compressive extension', or give a "
+                    "stress-stretch table with --stress-stretch)")
+    return None
+
+
+def hint_path(hint: str, paths) -> str:
+    """The log a hint names (its name opens the hint), else the first."""
+    for p in paths:
+        if hint.startswith(f"{p}'s") or hint.startswith(f"{Path(p).name}'s"):
+            return p
+    return paths[0]
+
+
+def _geometry_disagrees(input_info: list[dict]) -> list[dict]:
+    """A ``geometry-disagrees`` warning for each log whose size given as an option or in the
+    config differs from its own metadata by more than :data:`GEOMETRY_DISAGREE` (the option is
+    used: 20 x 10 mm given for an 18 x 12 mm specimen fits mu 486 Pa for 720)."""
+    from ..quality import warning
+    out = []
+    for info in input_info:
+        said = {k: v for k, v in (info.get("geometry_source") or {}).items() if "metadata says" in v}
+        if said:
+            out.append(warning(
+                "geometry-disagrees",
+                f"fit-ogden: {Path(info['path']).name}: " + "; ".join(
+                    f"{k} {info[k]:g} given, {v.split('says ')[1].rstrip(')')} in the log's metadata"
+                    for k, v in said.items())
+                + ": the size given is used (options win); stress and stretch scale with it, so check which is "
+                  "the specimen's", log, log_name=info["path"], given={k: info[k] for k in said}))
+    return out
+
+
 def _spikes_left_out(input_info: list[dict]) -> list[dict]:
     """``load-spikes`` and ``extension-spikes`` warnings: the samples of a log left out of the
     fit as over-range codes or glitches (:func:`bsipipe.io.machine_log.load_spikes`,
@@ -729,6 +789,9 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
                                                  max_strain=cfg.max_strain if kind == "logs" else None,
                                                  law=cfg.model)
         if not final.success:
+            hint = _softening_hint(data) if kind == "logs" else None
+            if hint is not None:
+                raise InputError(f"the {final.spec.describe()} fit did not converge, and {hint}", path=hint_path(hint, paths))
             raise ProcessingError(f"the {final.spec.describe()} fit did not converge: {final.message}",
                                   path=paths[0])
         boundary_said = (_declared_boundary_check(final, data, width, width_csv)
@@ -795,7 +858,7 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
     }
     result["warnings"] = _fit_quality(final)
     if kind == "logs":
-        result["warnings"] += _spikes_left_out(input_info) + _contacts_moved(input_info)
+        result["warnings"] += _spikes_left_out(input_info) + _contacts_moved(input_info) + _geometry_disagrees(input_info)
         if boundary_said is not None:
             result["boundary_check"] = boundary_said["evidence"]
             if boundary_said.get("warning"):
@@ -806,7 +869,13 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
         result["warnings"] += _baseline_ignored(input_info, data)
     if kind == "logs" and spec.compliance:
         result["warnings"] += _compliance_implausible(final.values.get("compliance_mm_per_n", 0.0), data)
-    _no_modulus(final.params, result["warnings"], paths[0])
+    try:
+        _no_modulus(final.params, result["warnings"], paths[0])
+    except ProcessingError:
+        hint = _softening_hint(data) if kind == "logs" else None
+        if hint is not None:
+            raise InputError(f"the fit ran every modulus to zero, and {hint}", path=hint_path(hint, paths)) from None
+        raise
     prov_inputs = paths + ([str(width_csv)] if width_csv is not None else []) + ([str(config)] if config else [])
     result["provenance"] = provenance(cfg, prov_inputs, command="fit-ogden")
 
