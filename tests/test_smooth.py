@@ -362,3 +362,16 @@ def test_the_same_frames_are_smoothed_alike_at_any_frame_rate():
         for c in ("x_px_smooth", "y_px_smooth", "sd_px_smooth"):
             np.testing.assert_allclose(out[c], ref[c], rtol=1e-9, atol=1e-9)
         assert models[0].q_px2_per_s3 == pytest.approx(ref_models[0].q_px2_per_s3 * (fps / 2.0) ** 3, rel=1e-9)
+
+
+def test_a_track_too_short_to_smooth_keeps_its_detections_sd():
+    """A sequence of 3 frames: no track can be smoothed (5 points needed), and every stated
+    error had been left empty (sd_px too, though it is the detection's own, 0.798 / SNR).
+    sd_px is now the detector's model there; the smoothed columns stay empty."""
+    from bsipipe.imaging.smooth import centre_sd_px, smooth_tracks
+    rows = [{"view": "cam1", "frame": f, "time_s": 0.5 * f, "marker": m, "x_px": 10.0 + f + k, "y_px": 20.0,
+             "snr": 10.0 + k, "found": True} for f in range(3) for k, m in enumerate(("A", "B"))]
+    out, models = smooth_tracks(pd.DataFrame(rows))
+    assert models == []
+    np.testing.assert_allclose(out["sd_px"], centre_sd_px(out["snr"].to_numpy(float)))
+    assert out["x_px_smooth"].isna().all() and out["sd_px_smooth"].isna().all()

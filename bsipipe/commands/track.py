@@ -639,6 +639,12 @@ def _point_sds(points3d: pd.DataFrame, table: pd.DataFrame, vpair, pair) -> None
         out = np.full((len(points3d), 3), np.nan)
         if two.any():
             sds = [t[sd_col].reindex(idx).to_numpy(float, copy=True) for t in per_view]
+            if sd_col == "sd_px_smooth":
+                # a track too short to smooth is triangulated from its raw centres: their sd
+                for t, sd in zip(per_view, sds):
+                    raw_sd = t["sd_px"].reindex(idx).to_numpy(float)
+                    unsmoothed = ~np.isfinite(sd) & ~np.isfinite(t["x_px_smooth"].reindex(idx).to_numpy(float))
+                    sd[unsmoothed] = raw_sd[unsmoothed]
             periods = [float(np.nanmedian(np.diff(np.unique(t["time_s"].dropna().to_numpy(float)))))
                        if t["time_s"].notna().sum() > 1 else np.nan for t in per_view]
             other_rate = bool(np.all(np.isfinite(periods)) and abs(periods[0] / periods[1] - 1.0) > 0.01)

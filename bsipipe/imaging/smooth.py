@@ -313,8 +313,9 @@ def smooth_tracks(table: pd.DataFrame, *, log_q_grid=LOG_Q_GRID, scale_grid=SCAL
     ``table`` needs ``view, frame, time_s, marker, x_px, y_px, snr`` (rows where the marker
     was not found have NaN positions).  Returns a copy with ``sd_px`` (the raw centre's
     per-axis sd, scaled error model), ``x_px_smooth``, ``y_px_smooth``, ``sd_px_smooth`` and
-    ``smooth_outlier`` added (NaN where the marker was not found, and for tracks with fewer
-    than ``min_points`` found points), and the per-track model.  A detection more than
+    ``smooth_outlier`` added (NaN where the marker was not found, and, but for ``sd_px`` (the
+    detector's own, unscaled), for tracks with fewer than ``min_points`` found points), and
+    the per-track model.  A detection more than
     ``outlier_sigma`` robust sd (1.4826 MAD of the track's residuals over the detector's sd, at
     least the detector's sd) off its smoothed track on either axis is a bad centre: it
     is left out, the track refitted, and its smoothed value is the track's there
@@ -351,6 +352,10 @@ def smooth_tracks(table: pd.DataFrame, *, log_q_grid=LOG_Q_GRID, scale_grid=SCAL
         SD[fi[found], mi[found]] = sd[found]
         n_found = np.isfinite(SD).sum(axis=0)
         use = np.flatnonzero(n_found >= min_points)
+        # a track too short to smooth keeps its detections' own sd (the detector's model,
+        # unscaled): its raw centres are what is triangulated
+        short = found & ~np.isin(mi, use)
+        new["sd_px"][views.indices[view][short]] = sd[short]
         if use.size == 0:
             continue
         fits.append(SimpleNamespace(
