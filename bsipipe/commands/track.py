@@ -891,6 +891,44 @@ def _check_seeds_found(table: pd.DataFrame, seed_df, together: list, info: dict,
                                   f"--diameter-px{hint}", path=path)
 
 
+def _larger_markers_said(warnings: list[dict], firsts: dict, seed_df, per_view_d: dict, polarity: str) -> None:
+    """Where the ``markers-rarely-found`` warning names a seeded marker that the first frame
+    shows at a diameter 2-4 times the one tracked (a much larger bead among small ones, which
+    the diameter estimate from the seeds leaves to the majority), say so in that warning
+    instead of leaving "too faint" as the likely reason."""
+    from ..imaging.detect import refine_at
+    from ..imaging.marker_size import PROBE, diameter_from_sigmas
+    for w in warnings:
+        if w.get("code") != "markers-rarely-found":
+            continue
+        bigger = {}
+        for v, ms in w["markers"].items():
+            img, d = firsts.get(v), float(per_view_d.get(v, 4.0))
+            if img is None:
+                continue
+            for m in ms:
+                row = seed_df[(seed_df["view"] == v) & (seed_df["marker"] == m)]
+                if row.empty:
+                    continue
+                xy = row[["x_px", "y_px"]].to_numpy(float)[:1]
+                for f in (2.0, 3.0, 4.0):
+                    r = refine_at(img, xy, f * d, polarity, search_radius_px=max(6.0, 0.5 * f * d), **PROBE)
+                    sig = r["sigma_px"].to_numpy(float)
+                    if bool(r["found"].iloc[0]) and np.isfinite(sig[0]):
+                        size = diameter_from_sigmas(sig)
+                        if size >= 2.0 * d:
+                            bigger.setdefault(v, {})[m] = round(float(size), 1)
+                        break
+        if bigger:
+            said = ("; ".join(f"{v}: " + ", ".join(f"{m} looks {s:g} px across" for m, s in ms.items())
+                              for v, ms in bigger.items())
+                    + " in the first frame, more than twice the diameter tracked: markers of such different sizes "
+                      "need separate runs, each with its own --diameter-px (and seeds)")
+            w["message"] += "; " + said
+            w["larger_markers_px"] = bigger
+            log.warning("track: %s", said)
+
+
 def _seeds_far(table: pd.DataFrame, seed_df, per_view_d: dict, tk) -> list[dict]:
     """A warning naming the seeds whose markers were found in the first frame farther from
     them than the tracker's seed radius (where most seeds miss their markers, the first frame
@@ -1463,6 +1501,8 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     if seed_df is not None:
         warnings += _seeds_far(table, seed_df, per_view_d, tk)
     table, more = _sequence_warnings(table, events, cfg, views, info, seed_df is not None)
+    if seed_df is not None:
+        _larger_markers_said(more, first_images, seed_df, per_view_d, cfg.polarity)
     warnings += more
 
     st = None
