@@ -473,7 +473,7 @@ def _search_frame(img, f: int, live: list[_Marker], pred, gates, diameter_px: fl
         events.append({"view": view, "frame": f, "marker": live[j].name, "kind": "ambiguous",
                        "other": live[i].name, "detail": "the two markers could be matched the other way round"})
     nm = len(live)
-    merged = _merged(f, live, pred, match, d2, cand, S["merge_px"], diameter_px, settings, view, events)
+    merged = _merged(f, live, pred, match, cand, S["merge_px"], diameter_px, settings, view, events)
     if merged.any():
         match = np.where(merged, -1, match)
     hit = match >= 0
@@ -523,8 +523,8 @@ def _search_frame(img, f: int, live: list[_Marker], pred, gates, diameter_px: fl
     return val
 
 
-def _merged(f: int, live: list[_Marker], pred: np.ndarray, match: np.ndarray, d2: np.ndarray, cand: dict,
-            merge_px: float, diameter_px: float, settings: TrackSettings, view: str, events: list[dict]) -> np.ndarray:
+def _merged(f: int, live: list[_Marker], pred: np.ndarray, match: np.ndarray, cand: dict, merge_px: float,
+            diameter_px: float, settings: TrackSettings, view: str, events: list[dict]) -> np.ndarray:
     """Which markers' images are merged with a neighbour's in frame ``f`` (n,) bool, and each
     marker's merge state updated (see :class:`TrackSettings` ``merge_px``).
 
@@ -576,7 +576,8 @@ def _merged(f: int, live: list[_Marker], pred: np.ndarray, match: np.ndarray, d2
             others = tuple(live[o].name for o in group if o != k)
             if not mk.merged_with:
                 mk.merged_since = f
-                events.append({"view": view, "frame": f, "marker": mk.name, "kind": "merged", "other": ", ".join(others),
+                events.append({"view": view, "frame": f, "marker": mk.name, "kind": "merged",
+                               "other": ", ".join(others),
                                "detail": "passing close: one image for both; left empty, each moves on at its "
                                          "velocity from before until they part"})
             mk.merged_with = tuple(dict.fromkeys(mk.merged_with + others))
@@ -962,7 +963,9 @@ def _track_swept(frames, diameter_px, polarity, *, view, fps, roi, detection, se
                 # and a wide gate kept open for them would only gather more noise
                 m = markers[i]
                 confirmed = m.n_meas + n_back[i] >= settings.min_track_frames
-                if f - m.frame > settings.memory or not confirmed:
+                # a track merged with a neighbour's image waits for them to part (at most
+                # merge_extrapolation_frames), however long that takes
+                if (f - m.frame > settings.memory and not m.merged_with) or not confirmed:
                     m.ended = True
                     if confirmed:
                         dormant.append(i)
