@@ -1456,3 +1456,19 @@ def test_where_the_times_come_from_is_said(tmp_path):
     fw = [w for w in j["warnings"] if w["code"] == "fps-ignored"]
     assert len(fw) == 1 and fw[0]["frames_per_s"]["cam1"] == pytest.approx(2.0, rel=0.01)
     assert j["views"]["cam1"]["time_source"] == "the source's time stamps"
+
+
+def test_diameter_of_two_sizes_when_the_small_ones_outnumber_the_large():
+    """Eight 0.5 mm beads and six 1 mm ones seeded (fitted widths about 0.9 and 1.8 px): the
+    median of the widths is a small bead's, and the diameter came out 2.62 px, at which the
+    probe's references were found in 9-28 of 221 frames and the study stopped at register.
+    With two sizes the diameter is at least 2.5 times the geometric mean of the two groups'
+    medians: the same as the median where the groups are about as many (the study's twin:
+    unchanged), between them where the small ones outnumber the large."""
+    from bsipipe.imaging.marker_size import diameter_from_sigmas
+    small, large = [0.89, 0.92, 0.93, 0.94, 0.97, 1.0, 1.0, 1.1], [1.71, 1.75, 1.77, 1.78, 1.97, 2.06]
+    assert diameter_from_sigmas(small + large) == pytest.approx(2.5 * np.sqrt(np.median(small) * np.median(large)))
+    assert 3.2 < diameter_from_sigmas(small + large) < 3.3
+    balanced = [0.75, 0.81, 0.84, 0.85, 1.01, 1.15, 1.65, 1.69, 1.7, 1.77, 1.82, 2.08]
+    assert diameter_from_sigmas(balanced) == pytest.approx(2.5 * np.median(balanced))
+    assert diameter_from_sigmas([1.0, 1.1, 1.2, 1.05]) == pytest.approx(2.5 * np.median([1.0, 1.1, 1.2, 1.05]))

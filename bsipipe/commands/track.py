@@ -495,6 +495,10 @@ def _read_calibration(path, views: Sequence[str]):
 #: fit the frames (the twin: 0.59 times, jolting frames with the loop's frame-shift 1.6; a C-arm
 #: moved 5 mm since the calibration: 4.1, turned 3 degrees 5.8; turned 1 degree, 1.9, passes).
 CALIBRATION_FIT_FACTOR = 2.0
+#: The same where the loop took jolts out (frame-shift): each frame's shift is an estimate from
+#: that frame's few markers, and its error stays in the reprojection (the study's twin with 5 px
+#: jolts: 2.0 times, its 3-D error 0.02 mm; the moved and turned C-arms above are 4.1 and 5.8).
+CALIBRATION_FIT_FACTOR_JOLTS = 3.0
 
 
 def _calibration_fit_warning(loop: dict, table: pd.DataFrame, cal_rms: float | None, pair) -> dict | None:
@@ -517,7 +521,8 @@ def _calibration_fit_warning(loop: dict, table: pd.DataFrame, cal_rms: float | N
         return None
     centre = float(np.sqrt(2.0 * np.mean((0.798 / snr) ** 2)))
     expected = math.hypot(cal_rms, centre)
-    if rms <= CALIBRATION_FIT_FACTOR * expected:
+    jolts = "frame-shift" in str(final.get("model", ""))
+    if rms <= (CALIBRATION_FIT_FACTOR_JOLTS if jolts else CALIBRATION_FIT_FACTOR) * expected:
         return None
     return warning(
         "calibration-mismatch",
