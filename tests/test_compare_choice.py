@@ -252,3 +252,15 @@ def test_fe_and_marker_clocks_in_different_units_are_invalid_input(tmp_path, whi
                 "-o", tmp_path / "cmp")
     assert r.exit_code == 2 and "same unit" in r.output and "fe.csv" in r.output, r.output
     assert not (tmp_path / "cmp").exists()
+
+
+def test_a_marker_missing_at_the_registration_frame_is_not_called_never_found():
+    """A marker found in many frames but not in the registration frame has no displacement
+    in any frame; the peak-frame note had called it "never found" (the probe: M1 in 43 frames,
+    M3 in 55)."""
+    from bsipipe.fe.compare import peak_frame_info
+    t = pd.DataFrame({"frame": [0, 0, 1, 1, 2, 2], "marker": list("ABABAB"),
+                      "x_mm": [0.0, np.nan, 0.1, 1.0, 0.2, 1.1],
+                      "dx_mm": [0.0, np.nan, 0.1, np.nan, 0.2, np.nan], "dy_mm": 0.0, "dz_mm": 0.0})
+    info = peak_frame_info(t)
+    assert "found in 2 frames but not in the registration frame" in info.left_out["B"]

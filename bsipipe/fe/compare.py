@@ -99,7 +99,11 @@ def peak_frame_info(table: pd.DataFrame, markers=None, *, max_gap_frames: int = 
         v = wide[m].to_numpy(float)
         missing = ~np.isfinite(v)
         if missing.all():
-            left_out[m] = "never found"
+            seen = int(np.isfinite(pd.to_numeric(t.loc[t["marker"].astype(str) == m, "x_mm"], errors="coerce")).sum()) \
+                if "x_mm" in t.columns else 0
+            left_out[m] = ("never found" if not seen else
+                           f"found in {seen} frames but not in the registration frame, which its displacements are "
+                           "measured from: none in any frame")
             continue
         longest = max((b - a for a, b in _runs(missing)), default=0)
         if longest > max_gap_frames:
