@@ -320,12 +320,26 @@ def _utc() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
 
+def _mark_stale(folder: Path, why: str) -> bool:
+    """A stage not run because an upstream stage failed keeps its folder (a user's earlier
+    results are not deleted), but a ``done`` stamp there would pass its files off as this
+    run's: the stamp becomes ``"state": "stale"`` with the reason.  The next run redoes the
+    stage unless the upstream stage comes back to the very results it had read (its key
+    holds them), and then stamps it done again.  True where a done stamp was so marked."""
+    stamp = read_stamp(folder)
+    if not stamp or stamp.get("state") != "done":
+        return False
+    atomic_write_bytes(_stamp_path(folder), dumps_json({**stamp, "state": "stale", "stale_since_utc": _utc(),
+                                                         "stale_because": why}).encode())
+    return True
+
+
 def _is_done(folder: Path, key: str) -> tuple[bool, str]:
     """Whether the folder holds a complete run with ``key``; else why not."""
     stamp = read_stamp(folder)
     if stamp is None:
         return False, "never run" if not folder.exists() else "no complete run"
-    if stamp.get("state") != "done":
+    if stamp.get("state") not in ("done", "stale"):
         return False, "the last run did not finish"
     if stamp.get("key") != key:
         return False, "inputs, config or code changed"
@@ -505,7 +519,9 @@ def run_stages(stages: list[Stage], out: Path, *, force: bool = False, only: Ite
                 if s.name in blocked:
                     pending.remove(s)
                     finish(s, StageOutcome(s.name, "not run", detail=blocked[s.name]))
-                    echo(f"[study] {s.name}: not run ({blocked[s.name]})")
+                    stale = _mark_stale(out / s.folder, blocked[s.name])
+                    echo(f"[study] {s.name}: not run ({blocked[s.name]})"
+                         + ("; its folder holds an earlier run's results, stamped stale" if stale else ""))
                     progressed = True
                     continue
                 ups = upstream_files(s)
@@ -519,7 +535,13 @@ def run_stages(stages: list[Stage], out: Path, *, force: bool = False, only: Ite
                 if done and not force:
                     pending.remove(s)
                     progressed = True
-                    o = StageOutcome(s.name, "up to date", key=key, outputs=read_stamp(folder)["outputs"])
+                    stamp = read_stamp(folder)
+                    if stamp.get("state") == "stale":
+                        # marked when an upstream stage failed; that stage is back to the same
+                        # results, so these are this run's again
+                        stamp = {k: v for k, v in stamp.items() if not k.startswith("stale_")}
+                        atomic_write_bytes(_stamp_path(folder), dumps_json({**stamp, "state": "done"}).encode())
+                    o = StageOutcome(s.name, "up to date", key=key, outputs=stamp["outputs"])
                     o.detail = summary(s)
                     finish(s, o)
                     echo(f"[study] {s.name}: up to date" + (f" ({o.detail})" if o.detail else ""))

@@ -188,6 +188,9 @@ def test_engine_failure_half_way_is_redone(tmp_path):
     st = run_stages(_graph(tmp_path, values, fail="b"), out, echo=quiet)   # in a worker process
     assert _status(st) == {"a": "up to date", "b": "failed", "c": "up to date", "d": "not run"}
     assert st[1].exit_code == 1 and "half-way" in st[1].detail
+    # d's folder keeps the earlier run's results, but its stamp no longer passes them off as
+    # this run's (the probe had read a stale export-fe stamped done)
+    assert read_stamp(out / "d")["state"] == "stale" and "b failed" in read_stamp(out / "d")["stale_because"]
     assert (out / "b" / "out.txt").read_text() == "half"           # the half-written file is there ...
     assert read_stamp(out / "b")["state"] == "running"              # ... and not taken as done
     values["b"] = 1                                                 # back to the clean run's config
@@ -195,6 +198,7 @@ def test_engine_failure_half_way_is_redone(tmp_path):
     assert _status(run_stages(_graph(tmp_path, values), out, echo=quiet, isolate=False)) == {
         "a": "up to date", "b": "ran", "c": "up to date", "d": "up to date"}
     assert (out / "b" / "out.txt").read_text() == clean
+    assert read_stamp(out / "d")["state"] == "done"                 # this run's results again
 
 
 def test_engine_refuses_a_folder_it_did_not_write(tmp_path):
