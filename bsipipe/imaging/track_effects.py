@@ -900,6 +900,12 @@ def estimate_time_offset(d: StereoData, max_offset_s: float | None = None, xb: n
     return out
 
 
+#: The largest clock rate difference searched (2 %: frame clocks differ by parts per
+#: thousand, video standards by 0.1 %; a twin rendered at 1 % had found its best at the old 1 %
+#: bound, rejected there, and kept a constant offset 0.26-0.29 s off at the sequence's ends).
+MAX_CLOCK_DRIFT = 0.02
+
+
 def estimate_clock_drift(d: StereoData, max_offset_s: float | None = None, xb: np.ndarray | None = None,
                          smooth_frames: int = 9, max_drift: float | None = None) -> dict:
     r"""B's clock offset :math:`\delta` and rate :math:`\varepsilon` (B's frame at nominal
@@ -910,7 +916,7 @@ def estimate_clock_drift(d: StereoData, max_offset_s: float | None = None, xb: n
     Searched as the offset at mid-sequence :math:`t_m` (:math:`\delta + \varepsilon t_m`,
     nearly independent of the rate) and the rate: for every rate on a grid over
     :math:`\pm` ``max_drift`` (default: the rate that moves the offset by the offset search's
-    range over the sequence, at most 1 %: frame clocks differ by parts per thousand), the best
+    range over the sequence, at most :data:`MAX_CLOCK_DRIFT`: frame clocks differ by parts per thousand), the best
     offset within 2 frame periods of the constant one; then Nelder-Mead from the best node.
     The rate is rejected (0, the constant offset kept, ``drift_rejected`` and why in
     ``note``) unless it acts like a clock: its minimum lies inside the range; it lowers the
@@ -927,7 +933,7 @@ def estimate_clock_drift(d: StereoData, max_offset_s: float | None = None, xb: n
     t0, t1 = (float(np.nanmin(d.ta)), float(np.nanmax(d.ta))) if len(d.ta) else (0.0, 0.0)
     duration = max(t1 - t0, dt)
     tm = 0.5 * (t0 + t1)
-    eps_max = float(max_drift) if max_drift is not None else min(0.01, lim / duration)
+    eps_max = float(max_drift) if max_drift is not None else min(MAX_CLOCK_DRIFT, lim / duration)
     delta0 = float(const.get("offset_rejected_s", const["view_time_offset_s"]) or 0.0)
     out = {"view_time_offset_s": const["view_time_offset_s"], "view_clock_drift": 0.0, "constant": const,
            "drift_search": [-eps_max, eps_max], "mid_time_s": tm}
