@@ -1318,6 +1318,8 @@ def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, 
             if w["code"] == "frame-shifts":
                 w["message"] = w["message"].replace(_JOLTS_CARRIED, _JOLTS_TAKEN_OUT)
                 w["corrected_by_loop"] = True
+                # the warning was logged before the loop ran, saying nothing corrects the jolts
+                log.warning("track: frame-shifts, after the loop: %s", _JOLTS_TAKEN_OUT)
         log.info("track: frame-shift: %s", ", ".join(f"{v} {n} frames" for v, n in n_sh.items()))
     table = table.sort_values(["view", "frame", "marker"], kind="stable")
     table["view"] = pd.Categorical(table["view"], categories=list(cfg.views))
