@@ -641,3 +641,32 @@ def test_views_at_different_frame_rates_pair_by_time(slow):
     assert t.max() >= 7.8                                   # the whole time both views cover (0-7.9 s)
     assert len(p) >= (0.97 if slow == "cam2" else 0.47) * len(p0)
     assert rms < 1.5 * rms0
+
+
+def test_single_view_points_are_named_in_full_and_have_an_sd():
+    """A marker hidden in cam1 for a while is placed on cam2's rays (occlusion effect): the
+    source column had read "single-v" (a numpy string array 8 characters wide) so nothing
+    could tell which view, and such points had no sd (a quarter of the points of the probe's
+    twin).  The source is "single-view:cam2"; the covariance across the ray is the centre's
+    sd through the projection, along it the trajectory's sd."""
+    from bsipipe.imaging.track_effects import StereoSpec, stereo_fit
+    from bsipipe.imaging.triangulate import single_view_covariance
+    cams = two_carms()
+    V = views_from_cameras(cams)
+    tab, _ = _moving_tracks(cams, seed=5)
+    hid = (tab["view"] == "cam1") & (tab["marker"] == "M2") & tab["frame"].between(30, 40)
+    tab.loc[hid, ["x_px", "y_px"]] = np.nan
+    tab.loc[hid, "found"] = False
+    fit = stereo_fit(stereo_data(tab, (V["cam1"], V["cam2"])), StereoSpec(occlusion=True))
+    one = fit.points[fit.points["n_views"] == 1]
+    assert len(one) and set(one["source"]) == {"single-view:cam2"}
+    X = one[["x_mm", "y_mm", "z_mm"]].to_numpy()
+    cov = single_view_covariance(V["cam2"], X, np.full(len(X), 0.1), np.full(len(X), 0.05))
+    r = X - V["cam2"].centre_mm
+    r /= np.linalg.norm(r, axis=1, keepdims=True)
+    np.testing.assert_allclose(np.einsum("ni,nij,nj->n", r, cov, r), 0.05 ** 2, rtol=1e-6)
+    # across the ray: 0.1 px at the point's depth over the focal length, per axis
+    depth = np.linalg.norm(X - V["cam2"].centre_mm, axis=1)
+    f = V["cam2"].K[0, 0]
+    across = np.trace(cov, axis1=1, axis2=2) - 0.05 ** 2
+    np.testing.assert_allclose(across, 2 * (0.1 * depth / f) ** 2, rtol=0.05)

@@ -677,8 +677,50 @@ def _point_sds(points3d: pd.DataFrame, table: pd.DataFrame, vpair, pair) -> None
                             sd[inside] = np.interp(tq[inside], tt, own[sd_col].to_numpy(float))
             cov = point_covariance(vpair, points3d.loc[two, list(cols)].to_numpy(float), sds)
             out[two] = np.sqrt(np.einsum("nkk->nk", cov))
+        _single_view_sds(points3d, table, vpair, pair, cols, "sd_px" if suffix else sd_col, out)
         for k, a in enumerate("xyz"):
             points3d[f"sd_{a}_mm{suffix}"] = out[:, k]
+
+
+def _single_view_sds(points3d: pd.DataFrame, table: pd.DataFrame, vpair, pair, cols, sd_col: str,
+                     out: np.ndarray) -> None:
+    """Each single-view point's sd per axis into ``out`` (rows of ``points3d``): across its
+    view's ray from that view's centre sd (``sd_col``, the raw ``sd_px`` where the track was
+    not smoothed), along it the sd the marker's two-view points have there (each axis's sd
+    interpolated in time, projected on the ray) (:func:`~bsipipe.imaging.triangulate.single_view_covariance`).
+    They had none: a quarter of the points of a twin with jolts and specks."""
+    from ..imaging.triangulate import single_view_covariance
+    src = points3d["source"].astype(str) if "source" in points3d else pd.Series("", index=points3d.index)
+    tcol = "time_s" if "time_s" in points3d and points3d["time_s"].notna().any() else "frame"
+    for view, name in zip(vpair, pair):
+        one = (points3d["n_views"] == 1).to_numpy() & (src == f"single-view:{name}").to_numpy()
+        if not one.any():
+            continue
+        rows = points3d.loc[one]
+        t = table[table["view"] == name].set_index(["frame", "marker"])
+        idx = pd.MultiIndex.from_frame(rows[["frame", "marker"]])
+        sd = t[sd_col].reindex(idx).to_numpy(float, copy=True)
+        if sd_col != "sd_px":
+            raw = t["sd_px"].reindex(idx).to_numpy(float)
+            sd = np.where(np.isfinite(sd), sd, raw)
+        X = rows[list(cols)].to_numpy(float)
+        ray = X - view.centre_mm
+        ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+        along = np.full(len(rows), np.nan)
+        markers = points3d["marker"].to_numpy()
+        times = points3d[tcol].to_numpy(float)
+        two = (points3d["n_views"] == 2).to_numpy() & np.isfinite(out).all(axis=1) & np.isfinite(times)
+        tq = rows[tcol].to_numpy(float)
+        for m in pd.unique(rows["marker"]):
+            k2 = np.flatnonzero(two & (markers == m))                  # positions of its two-view points
+            sel = (rows["marker"] == m).to_numpy()
+            if not len(k2):
+                continue
+            k2 = k2[np.argsort(times[k2], kind="stable")]
+            at = np.column_stack([np.interp(tq[sel], times[k2], out[k2, k]) for k in range(3)])
+            along[sel] = np.sqrt(np.sum((ray[sel] * at) ** 2, axis=1))
+        cov = single_view_covariance(view, X, sd, along)
+        out[np.flatnonzero(one)] = np.sqrt(np.einsum("nkk->nk", cov))
 
 
 def _frames_listed(frames: dict[str, list[int]]) -> str:

@@ -1724,7 +1724,7 @@ def stereo_fit(d: StereoData, spec: StereoSpec, *, max_offset_s: float | None = 
     g = r["ray_gap_signed_mm"].reshape(F, M)
     rep = r["reproj_px"].reshape(F, M, 2)
     n_views = np.where(np.isfinite(X).all(axis=2), 2, 0)
-    source = np.where(n_views == 2, "two-view", "")
+    source = np.where(n_views == 2, "two-view", "").astype(object)     # room for "single-view:NAME"
     if spec.occlusion:
         n_single = 0
         Xi = _interp_trajectory(d.ta, X)

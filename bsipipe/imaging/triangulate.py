@@ -323,6 +323,35 @@ def point_covariance(views, X: np.ndarray, sd_px) -> np.ndarray:
     return cov
 
 
+def single_view_covariance(view: ViewGeometry, X: np.ndarray, sd_px, sd_along_mm) -> np.ndarray:
+    r"""First-order covariance (N, 3, 3) mm^2 of points ``X`` (N, 3) placed on one view's rays
+    (:func:`closest_point_on_ray`: the depth along the ray from a trajectory the two-view
+    points give).  Across the ray, the centre's per-axis sd ``sd_px`` (N,) through the
+    pseudo-inverse of the projection's Jacobian, :math:`s^2 J^+ J^{+T}`; along it,
+    ``sd_along_mm`` (N,), the sd the trajectory has there.  NaN where either is missing."""
+    X = np.asarray(X, float).reshape(-1, 3)
+    n = len(X)
+    sd = np.asarray(sd_px, float).reshape(-1)
+    sa = np.asarray(sd_along_mm, float).reshape(-1)
+    cov = np.full((n, 3, 3), np.nan)
+    ok = np.isfinite(X).all(axis=1) & np.isfinite(sd) & (sd > 0) & np.isfinite(sa) & (sa >= 0)
+    if not ok.any():
+        return cov
+    Xs = X[ok]
+    h = 1e-3
+    J = np.empty((len(Xs), 2, 3))
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = h
+        J[:, :, k] = (view.project(Xs + e) - view.project(Xs - e)) / (2 * h)
+    Jp = np.linalg.pinv(J)                                   # (m, 3, 2), across the ray
+    r = Xs - view.centre_mm
+    r /= np.linalg.norm(r, axis=1, keepdims=True)
+    cov[ok] = (sd[ok, None, None] ** 2 * Jp @ Jp.transpose(0, 2, 1)
+               + sa[ok, None, None] ** 2 * r[:, :, None] * r[:, None, :])
+    return cov
+
+
 def closest_point_on_ray(view: ViewGeometry, uv: np.ndarray, target_mm: np.ndarray) -> np.ndarray:
     """The point (n, 3) on each ray through raw pixels ``uv`` nearest to ``target_mm`` (n, 3):
     a single-view reconstruction constrained by a predicted 3-D position."""
