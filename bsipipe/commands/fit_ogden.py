@@ -108,20 +108,23 @@ def _loading_speed(time_s: np.ndarray, disp_mm: np.ndarray, start: int) -> float
     return float(dd[~hold].sum() / dt[~hold].sum())
 
 
-def _geometry(name: str, given: dict, logfile) -> tuple[dict, dict]:
+def _geometry(name: str, given: dict, logfile) -> tuple[dict, dict, dict]:
     """Diameter and height for one log: options/config first (``given``: this log's value of
-    each, None where not given), then the log's metadata.
+    each, None where not given), then the log's metadata.  Returns the sizes, where each came
+    from, and the metadata's sizes that a given one contradicts by more than
+    :data:`GEOMETRY_DISAGREE` (options win; :func:`_geometry_disagrees` says so).
 
     A cylinder's height is its ``Thickness`` in Bluehill's compression templates
     (``Dimensions : Thickness``): the metadata's thickness is the height where the log
     states no height."""
-    out, source = {}, {}
+    out, source, disagree = {}, {}, {}
     for key in ("diameter_mm", "height_mm"):
         v = given[key]
         if v is not None:
             out[key], source[key] = float(v), "option or config"
             meta = logfile.geometry.get(key, logfile.geometry.get("thickness_mm") if key == "height_mm" else None)
             if meta is not None and abs(float(v) / float(meta) - 1.0) > GEOMETRY_DISAGREE:
+                disagree[key] = float(meta)
                 source[key] += f" (the log's metadata says {float(meta):g} mm)"
         elif key in logfile.geometry:
             out[key], source[key] = float(logfile.geometry[key]), "log metadata"
@@ -142,7 +145,7 @@ def _geometry(name: str, given: dict, logfile) -> tuple[dict, dict]:
         raise InputError(f"specimen {' and '.join(missing)} missing: give {opts}, set "
                          f"{' and '.join(missing)} in --config, or state it in the log's metadata",
                          path=name)
-    return out, source
+    return out, source, disagree
 
 
 #: Relative difference between a size given as an option (or config) and the log's own
@@ -211,7 +214,7 @@ def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig):
     dims = {k: _per_log(cfg, k, paths) for k in ("diameter_mm", "height_mm")}
     for i, (p, given) in enumerate(zip(paths, _per_log(cfg, "contact_mm", paths))):
         ml = read_machine_log(p)
-        geo, geo_source = _geometry(str(p), {k: v[i] for k, v in dims.items()}, ml)
+        geo, geo_source, geo_disagree = _geometry(str(p), {k: v[i] for k, v in dims.items()}, ml)
         disp, force = ml.compression()
         time_s = ml.time_s
         rows = np.arange(len(ml))                # the record's sample of each one kept
@@ -295,7 +298,8 @@ def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig):
         inputs.append({"path": str(p), "layout": ml.layout, "speed_mm_s": speed,
                        "contact_mm": contact_mm, "n_points": int(len(disp)), **record,
                        "diameter_mm": geo["diameter_mm"], "height_mm": geo["height_mm"],
-                       "geometry_source": geo_source, "contact": contact_info, "force_baseline": baseline,
+                       "geometry_source": geo_source, "geometry_metadata_disagrees": geo_disagree,
+                       "contact": contact_info, "force_baseline": baseline,
                        "sign_from": ml.dialect.get("sign_from"),
                        "specimen_label": ml.metadata.get("Specimen label")})
     return logs, inputs
@@ -472,12 +476,13 @@ def _compliance_implausible(c_mm_per_n: float, data) -> list[dict]:
     return out
 
 
-def _softening_hint(data) -> str | None:
+def _softening_hint(data) -> tuple[int, str] | None:
     """Why a fit failed, where a log's force rises ever more slowly past the contact (the
     second half of its travel adds less than 0.8 of the first's force per millimetre): brain
     tissue in unconfined compression stiffens, so such a record is a tension test (or its
-    channels' signs read the wrong way), which the compression law cannot fit."""
-    for lg in data:
+    channels' signs read the wrong way), which the compression law cannot fit.  Returns the
+    log's index and the words, or None."""
+    for i, lg in enumerate(data):
         past = lg.displacement_mm > lg.contact_mm
         x = lg.displacement_mm[past] - lg.contact_mm
         f = np.abs(lg.force_n[past])
@@ -489,20 +494,19 @@ def _softening_hint(data) -> str | None:
         k1 = np.polyfit(x[half], f[half], 1)[0]
         k2 = np.polyfit(x[~half], f[~half], 1)[0]
         if k1 > 0 and k2 < 0.8 * k1:
-            return (f"{lg.name}'s force rises ever more slowly past the contact (slope {k2:.3g} N/mm over the second "
-                    f"half of its travel, {k1:.3g} over the first): brain tissue in unconfined compression stiffens, "
-                    "so this looks like a tension test, or its extension or load read with the wrong sign "
-                    "(fit-ogden fits compression; name the columns, e.g. 'Compressive extension', or give a "
-                    "stress-stretch table with --stress-stretch)")
+            return i, (f"{lg.name}'s force rises ever more slowly past the contact (slope {k2:.3g} N/mm over the "
+                       f"second half of its travel, {k1:.3g} over the first): brain tissue in unconfined compression "
+                       "stiffens, so this looks like a tension test, or its extension or load read with the wrong "
+                       "sign (fit-ogden fits compression; name the columns, e.g. 'Compressive extension', or give a "
+                       "stress-stretch table with --stress-stretch)")
     return None
 
 
-def hint_path(hint: str, paths) -> str:
-    """The log a hint names (its name opens the hint), else the first."""
-    for p in paths:
-        if hint.startswith(f"{p}'s") or hint.startswith(f"{Path(p).name}'s"):
-            return p
-    return paths[0]
+def _raise_if_softening(what: str, kind: str, data, paths) -> None:
+    """Exit 2 for a failed fit (``what`` went wrong) of a log :func:`_softening_hint` names."""
+    hint = _softening_hint(data) if kind == "logs" else None
+    if hint is not None:
+        raise InputError(f"{what}, and {hint[1]}", path=paths[hint[0]]) from None
 
 
 def _geometry_disagrees(input_info: list[dict]) -> list[dict]:
@@ -512,13 +516,12 @@ def _geometry_disagrees(input_info: list[dict]) -> list[dict]:
     from ..quality import warning
     out = []
     for info in input_info:
-        said = {k: v for k, v in (info.get("geometry_source") or {}).items() if "metadata says" in v}
+        said = info.get("geometry_metadata_disagrees") or {}
         if said:
             out.append(warning(
                 "geometry-disagrees",
                 f"fit-ogden: {Path(info['path']).name}: " + "; ".join(
-                    f"{k} {info[k]:g} given, {v.split('says ')[1].rstrip(')')} in the log's metadata"
-                    for k, v in said.items())
+                    f"{k} {info[k]:g} given, {meta:g} mm in the log's metadata" for k, meta in said.items())
                 + ": the size given is used (options win); stress and stretch scale with it, so check which is "
                   "the specimen's", log, log_name=info["path"], given={k: info[k] for k in said}))
     return out
@@ -789,9 +792,7 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
                                                  max_strain=cfg.max_strain if kind == "logs" else None,
                                                  law=cfg.model)
         if not final.success:
-            hint = _softening_hint(data) if kind == "logs" else None
-            if hint is not None:
-                raise InputError(f"the {final.spec.describe()} fit did not converge, and {hint}", path=hint_path(hint, paths))
+            _raise_if_softening(f"the {final.spec.describe()} fit did not converge", kind, data, paths)
             raise ProcessingError(f"the {final.spec.describe()} fit did not converge: {final.message}",
                                   path=paths[0])
         boundary_said = (_declared_boundary_check(final, data, width, width_csv)
@@ -872,9 +873,7 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
     try:
         _no_modulus(final.params, result["warnings"], paths[0])
     except ProcessingError:
-        hint = _softening_hint(data) if kind == "logs" else None
-        if hint is not None:
-            raise InputError(f"the fit ran every modulus to zero, and {hint}", path=hint_path(hint, paths)) from None
+        _raise_if_softening("the fit ran every modulus to zero", kind, data, paths)
         raise
     prov_inputs = paths + ([str(width_csv)] if width_csv is not None else []) + ([str(config)] if config else [])
     result["provenance"] = provenance(cfg, prov_inputs, command="fit-ogden")
