@@ -142,6 +142,30 @@ def diameter_without_seeds(first: np.ndarray, polarity: str, roi=None) -> tuple[
 SEED_REACH = 2.5
 
 
+def sigmas_at(first: np.ndarray, xy, d: float, polarity: str, reach: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Whether each of the points ``xy`` (n, 2) finds a marker at diameter ``d`` within
+    ``reach`` times the probe's radius (``max(6, d/2)``) with a fitted width, and that width
+    (sigma, px) (:func:`~bsipipe.imaging.detect.refine_at`, plane background)."""
+    r = refine_at(first, xy, d, polarity, search_radius_px=reach * max(6.0, 0.5 * d), **PROBE)
+    return r["found"].to_numpy(bool) & np.isfinite(r["sigma_px"].to_numpy()), r["sigma_px"].to_numpy()
+
+
+def larger_sigmas(first: np.ndarray, xy, d: float, polarity: str,
+                  factors=(1.5, 2.0, 3.0, 4.0)) -> np.ndarray:
+    """Each point's fitted width (sigma, px) at the first of ``factors`` times ``d`` (at most
+    40 px) that finds a marker there, NaN where none does: markers larger than ``d``."""
+    xy = np.asarray(xy, float).reshape(-1, 2)
+    out = np.full(len(xy), np.nan)
+    miss = np.arange(len(xy))
+    for f in factors:
+        if not len(miss):
+            break
+        big, sb = sigmas_at(first, xy[miss], min(40.0, f * d), polarity)
+        out[miss[big]] = sb[big]
+        miss = miss[~big]
+    return out
+
+
 def diameter_from_seeds(first: np.ndarray, seeds: pd.DataFrame, polarity: str) -> tuple[float, str]:
     """Marker diameter from the seeds of one view, and a note: from the fitted Gaussian sigmas
     of the seeded markers in the first frame (:func:`diameter_from_sigmas`).
@@ -155,9 +179,8 @@ def diameter_from_seeds(first: np.ndarray, seeds: pd.DataFrame, polarity: str) -
     runs.)  ``first``: the view's first frame."""
     xy = seeds[["x_px", "y_px"]].to_numpy()
 
-    def found_at(d, pts):
-        r = refine_at(first, pts, d, polarity, search_radius_px=max(6.0, 0.5 * d), **PROBE)
-        return r["found"].to_numpy(bool) & np.isfinite(r["sigma_px"].to_numpy()), r["sigma_px"].to_numpy()
+    def found_at(d, pts, reach=1.0):
+        return sigmas_at(first, pts, d, polarity, reach)
 
     # first probed at 4 px, then 8 and 16 px (markers much larger than 4 px are not seen by a
     # top-hat that small)
@@ -170,10 +193,9 @@ def diameter_from_seeds(first: np.ndarray, seeds: pd.DataFrame, polarity: str) -
         # most seeds find no marker within the probe's reach: clicks systematically off (a
         # scaled display); the diameter is measured on what a wider search finds, not on the
         # one or two seeds that happened to lie near a marker
-        r = refine_at(first, xy, d0, polarity, search_radius_px=SEED_REACH * max(6.0, 0.5 * d0), **PROBE)
-        ok2 = r["found"].to_numpy(bool) & np.isfinite(r["sigma_px"].to_numpy())
+        ok2, s2 = found_at(d0, xy, SEED_REACH)
         if ok2.sum() > ok.sum():
-            ok, s = ok2, r["sigma_px"].to_numpy()
+            ok, s = ok2, s2
             far = f"; most seeds far from their markers, searched {SEED_REACH:g} x as far"
     if not ok.any():
         return 4.0, "default: no seeded marker measured in the first frame"
@@ -182,15 +204,9 @@ def diameter_from_seeds(first: np.ndarray, seeds: pd.DataFrame, polarity: str) -
     hit, _ = found_at(d, xy)
     if hit.all():
         return d, note
-    miss = np.flatnonzero(~hit)
-    sig = []
-    for f in (1.5, 2.0, 3.0, 4.0):
-        big, sb = found_at(min(40.0, f * d), xy[miss])
-        sig.extend(sb[big])
-        miss = miss[~big]
-        if len(miss) == 0:
-            break
-    if sig:
+    sig = larger_sigmas(first, xy[~hit], d, polarity)
+    sig = sig[np.isfinite(sig)]
+    if len(sig):
         d2 = diameter_from_sigmas(sig)
         hit2, _ = found_at(d2, xy)
         # a second size of marker, not one stray find: at least half the seeds missed at d
