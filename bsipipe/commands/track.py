@@ -630,54 +630,64 @@ def _stereo_check(table: pd.DataFrame, points3d: pd.DataFrame, vpair, pair, trac
             "markers": per}
 
 
+def _centre_sd(t: pd.DataFrame, idx, sd_col: str) -> np.ndarray:
+    """One view's centre sd (px) at the ``(frame, marker)`` cells ``idx`` of its table ``t``:
+    ``sd_col``, and for the smoothed one (``sd_px_smooth``) the raw ``sd_px`` where the track
+    was too short to smooth (its raw centres are what is triangulated)."""
+    sd = t[sd_col].reindex(idx).to_numpy(float, copy=True)
+    if sd_col == "sd_px_smooth":
+        unsmoothed = ~np.isfinite(sd) & ~np.isfinite(t["x_px_smooth"].reindex(idx).to_numpy(float))
+        sd[unsmoothed] = t["sd_px"].reindex(idx).to_numpy(float)[unsmoothed]
+    return sd
+
+
+def _sd_at_times(t: pd.DataFrame, idx, names: np.ndarray, tq: np.ndarray, sd_col: str, sd: np.ndarray) -> None:
+    """In place: where a point's ``sd`` is missing, or its view's row of that frame number is
+    another time (a view at its own frame rate, interpolated to the other's frame times), the
+    view's ``sd_col`` at the point's time ``tq``, linear between its own frames."""
+    row_t = t["time_s"].reindex(idx).to_numpy(float)
+    gap = ~np.isfinite(sd) | ~(np.abs(row_t - tq) <= 1e-6 * max(1.0, float(np.nanmax(np.abs(tq)))))
+    gap &= np.isfinite(tq)
+    for m in pd.unique(names[gap]):
+        if m not in t.index.get_level_values("marker"):
+            continue
+        own = t.xs(m, level="marker")
+        own = own[np.isfinite(own["time_s"]) & np.isfinite(own[sd_col])].sort_values("time_s")
+        sel = gap & (names == m)
+        if len(own) >= 2 and sel.any():
+            tt = own["time_s"].to_numpy(float)
+            inside = sel & (tq >= tt[0]) & (tq <= tt[-1])
+            sd[inside] = np.interp(tq[inside], tt, own[sd_col].to_numpy(float))
+
+
 def _point_sds(points3d: pd.DataFrame, table: pd.DataFrame, vpair, pair) -> None:
     """Each two-view point's standard deviation per axis (mm), propagated from its two
     centres' (:func:`bsipipe.imaging.triangulate.point_covariance`): ``sd_x_mm, sd_y_mm,
     sd_z_mm`` of the smoothed point from ``sd_px_smooth``, ``sd_x_mm_raw`` ... of the raw one
-    from ``sd_px`` (both as the stereo check left them); NaN for single-view points."""
+    from ``sd_px`` (both as the stereo check left them); single-view points' from
+    :func:`_single_view_sds`."""
+    from ..imaging.track_effects import frame_period, rates_differ
     from ..imaging.triangulate import point_covariance
     two = (points3d["n_views"] == 2).to_numpy()
     idx = pd.MultiIndex.from_frame(points3d.loc[two, ["frame", "marker"]])
     per_view = [table[table["view"] == v].set_index(["frame", "marker"]) for v in pair]
+    # views at their own frame rates: the second was interpolated to the first's frame times
+    # (track_effects.stereo_data), so its sd is taken at each point's time
+    other_rate = rates_differ(*(frame_period(t.index.get_level_values("frame"), t["time_s"]) for t in per_view))
+    tq = points3d.loc[two, "time_s"].to_numpy(float) if other_rate and "time_s" in points3d else None
+    names = points3d.loc[two, "marker"].to_numpy()
     for suffix, cols, sd_col in (("", ("x_mm", "y_mm", "z_mm"), "sd_px_smooth"),
                                  ("_raw", ("x_mm_raw", "y_mm_raw", "z_mm_raw"), "sd_px")):
         out = np.full((len(points3d), 3), np.nan)
         if two.any():
-            sds = [t[sd_col].reindex(idx).to_numpy(float, copy=True) for t in per_view]
-            if sd_col == "sd_px_smooth":
-                # a track too short to smooth is triangulated from its raw centres: their sd
+            sds = [_centre_sd(t, idx, sd_col) for t in per_view]
+            if tq is not None:
                 for t, sd in zip(per_view, sds):
-                    raw_sd = t["sd_px"].reindex(idx).to_numpy(float)
-                    unsmoothed = ~np.isfinite(sd) & ~np.isfinite(t["x_px_smooth"].reindex(idx).to_numpy(float))
-                    sd[unsmoothed] = raw_sd[unsmoothed]
-            periods = [float(np.nanmedian(np.diff(np.unique(t["time_s"].dropna().to_numpy(float)))))
-                       if t["time_s"].notna().sum() > 1 else np.nan for t in per_view]
-            other_rate = bool(np.all(np.isfinite(periods)) and abs(periods[0] / periods[1] - 1.0) > 0.01)
-            tq = points3d.loc[two, "time_s"].to_numpy(float) if other_rate and "time_s" in points3d else None
-            for t, sd in zip(per_view, sds):
-                # a view at its own frame rate was interpolated to the other's frame times (its
-                # frame of the same number is another time, or none): its sd at the point's
-                # time, from its own frames either side (linear)
-                if tq is None or not t["time_s"].notna().any():
-                    continue
-                row_t = t["time_s"].reindex(idx).to_numpy(float)
-                gap = ~np.isfinite(sd) | ~(np.abs(row_t - tq) <= 1e-6 * max(1.0, float(np.nanmax(np.abs(tq)))))
-                gap &= np.isfinite(tq)
-                if gap.any():
-                    names = points3d.loc[two, "marker"].to_numpy()
-                    for m in pd.unique(names[gap]):
-                        own = t.xs(m, level="marker") if m in t.index.get_level_values("marker") else None
-                        if own is None:
-                            continue
-                        own = own[np.isfinite(own["time_s"]) & np.isfinite(own[sd_col])].sort_values("time_s")
-                        sel = gap & (names == m) & np.isfinite(tq)
-                        if len(own) >= 2 and sel.any():
-                            tt = own["time_s"].to_numpy(float)
-                            inside = sel & (tq >= tt[0]) & (tq <= tt[-1])
-                            sd[inside] = np.interp(tq[inside], tt, own[sd_col].to_numpy(float))
+                    if t["time_s"].notna().any():
+                        _sd_at_times(t, idx, names, tq, sd_col, sd)
             cov = point_covariance(vpair, points3d.loc[two, list(cols)].to_numpy(float), sds)
             out[two] = np.sqrt(np.einsum("nkk->nk", cov))
-        _single_view_sds(points3d, table, vpair, pair, cols, "sd_px" if suffix else sd_col, out)
+        _single_view_sds(points3d, table, vpair, pair, cols, sd_col, out)
         for k, a in enumerate("xyz"):
             points3d[f"sd_{a}_mm{suffix}"] = out[:, k]
 
@@ -685,31 +695,27 @@ def _point_sds(points3d: pd.DataFrame, table: pd.DataFrame, vpair, pair) -> None
 def _single_view_sds(points3d: pd.DataFrame, table: pd.DataFrame, vpair, pair, cols, sd_col: str,
                      out: np.ndarray) -> None:
     """Each single-view point's sd per axis into ``out`` (rows of ``points3d``): across its
-    view's ray from that view's centre sd (``sd_col``, the raw ``sd_px`` where the track was
-    not smoothed), along it the sd the marker's two-view points have there (each axis's sd
-    interpolated in time, projected on the ray) (:func:`~bsipipe.imaging.triangulate.single_view_covariance`).
-    They had none: a quarter of the points of a twin with jolts and specks."""
+    view's ray from that view's centre sd (:func:`_centre_sd`), along it the sd the marker's
+    two-view points have there (each axis's sd interpolated in time, projected on the ray)
+    (:func:`~bsipipe.imaging.triangulate.single_view_covariance`).  They had none: a quarter
+    of the points of a twin with jolts and specks."""
     from ..imaging.triangulate import single_view_covariance
     src = points3d["source"].astype(str) if "source" in points3d else pd.Series("", index=points3d.index)
     tcol = "time_s" if "time_s" in points3d and points3d["time_s"].notna().any() else "frame"
+    markers = points3d["marker"].to_numpy()
+    times = points3d[tcol].to_numpy(float)
+    two = (points3d["n_views"] == 2).to_numpy() & np.isfinite(out).all(axis=1) & np.isfinite(times)
     for view, name in zip(vpair, pair):
         one = (points3d["n_views"] == 1).to_numpy() & (src == f"single-view:{name}").to_numpy()
         if not one.any():
             continue
         rows = points3d.loc[one]
         t = table[table["view"] == name].set_index(["frame", "marker"])
-        idx = pd.MultiIndex.from_frame(rows[["frame", "marker"]])
-        sd = t[sd_col].reindex(idx).to_numpy(float, copy=True)
-        if sd_col != "sd_px":
-            raw = t["sd_px"].reindex(idx).to_numpy(float)
-            sd = np.where(np.isfinite(sd), sd, raw)
+        sd = _centre_sd(t, pd.MultiIndex.from_frame(rows[["frame", "marker"]]), sd_col)
         X = rows[list(cols)].to_numpy(float)
         ray = X - view.centre_mm
         ray /= np.linalg.norm(ray, axis=1, keepdims=True)
         along = np.full(len(rows), np.nan)
-        markers = points3d["marker"].to_numpy()
-        times = points3d[tcol].to_numpy(float)
-        two = (points3d["n_views"] == 2).to_numpy() & np.isfinite(out).all(axis=1) & np.isfinite(times)
         tq = rows[tcol].to_numpy(float)
         for m in pd.unique(rows["marker"]):
             k2 = np.flatnonzero(two & (markers == m))                  # positions of its two-view points
@@ -943,8 +949,7 @@ def _larger_markers_said(warnings: list[dict], firsts: dict, seed_df, per_view_d
     shows at a diameter 2-4 times the one tracked (a much larger bead among small ones, which
     the diameter estimate from the seeds leaves to the majority), say so in that warning
     instead of leaving "too faint" as the likely reason."""
-    from ..imaging.detect import refine_at
-    from ..imaging.marker_size import PROBE, diameter_from_sigmas
+    from ..imaging.marker_size import diameter_from_sigmas, larger_sigmas
     for w in warnings:
         if w.get("code") != "markers-rarely-found":
             continue
@@ -957,15 +962,9 @@ def _larger_markers_said(warnings: list[dict], firsts: dict, seed_df, per_view_d
                 row = seed_df[(seed_df["view"] == v) & (seed_df["marker"] == m)]
                 if row.empty:
                     continue
-                xy = row[["x_px", "y_px"]].to_numpy(float)[:1]
-                for f in (2.0, 3.0, 4.0):
-                    r = refine_at(img, xy, f * d, polarity, search_radius_px=max(6.0, 0.5 * f * d), **PROBE)
-                    sig = r["sigma_px"].to_numpy(float)
-                    if bool(r["found"].iloc[0]) and np.isfinite(sig[0]):
-                        size = diameter_from_sigmas(sig)
-                        if size >= 2.0 * d:
-                            bigger.setdefault(v, {})[m] = round(float(size), 1)
-                        break
+                sig = larger_sigmas(img, row[["x_px", "y_px"]].to_numpy(float)[:1], d, polarity, (2.0, 3.0, 4.0))
+                if np.isfinite(sig[0]) and (size := diameter_from_sigmas(sig)) >= 2.0 * d:
+                    bigger.setdefault(v, {})[m] = round(float(size), 1)
         if bigger:
             said = ("; ".join(f"{v}: " + ", ".join(f"{m} looks {s:g} px across" for m, s in ms.items())
                               for v, ms in bigger.items())
@@ -1312,8 +1311,8 @@ def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, 
                         f"{'s' if st['n_frames'] > 1 else ''} (frame {st['frame']} on)" for st in steps)
             + ". The frames are paired by their times put right (the other view's tracks interpolated across a "
               "gap; a repeated frame's copies hold nothing new and have no 3-D point); markers3d.csv's time_s has "
-              "the times put right, markers2d.csv keeps each view's own count. Check the recording (a capture that skipped or "
-              "repeated frames, frame files deleted and the rest renumbered)", log, steps=steps))
+              "the times put right, markers2d.csv keeps each view's own count. Check the recording (a capture "
+              "that skipped or repeated frames, frame files deleted and the rest renumbered)", log, steps=steps))
     points3d = fit.points.copy()
     if time_unit == "frame":
         points3d["time_s"] = np.nan

@@ -215,6 +215,36 @@ def stereo_data(table: pd.DataFrame, views: tuple[ViewGeometry, ViewGeometry]) -
     return StereoData(views, frames, markers, xa, xb, ta, tb, sa, sb)
 
 
+#: Two views whose median frame intervals differ by more than this fraction run at their own
+#: frame rates (frame k of one is not taken with frame k of the other).
+OTHER_RATE = 0.01
+
+
+def frame_period(frames, times) -> float:
+    """A view's median frame interval from its rows' frame numbers and times (the first time
+    of each frame, in frame order); NaN where fewer than two frames have one."""
+    t = pd.Series(np.asarray(times, float)).groupby(np.asarray(frames)).first().sort_index().to_numpy(float)
+    d = np.diff(t[np.isfinite(t)])
+    return float(np.median(d)) if len(d) else np.nan
+
+
+def rates_differ(pa: float, pb: float) -> bool:
+    """Whether two views' frame periods (:func:`frame_period`) are more than :data:`OTHER_RATE`
+    apart (both known)."""
+    return bool(np.isfinite(pa) and np.isfinite(pb) and pa > 0 and pb > 0 and abs(pa / pb - 1.0) > OTHER_RATE)
+
+
+def _flags_near(t_src: np.ndarray, flags: np.ndarray, t_query: np.ndarray, reach: float) -> np.ndarray:
+    """(len(t_query), M): a flagged sample (``flags`` (F, M) at times ``t_src``) taints the
+    points interpolated within ``reach`` of it."""
+    out = np.zeros((len(t_query), flags.shape[1]), bool)
+    for j in range(flags.shape[1]):
+        ts = t_src[flags[:, j] & np.isfinite(t_src)]
+        if len(ts):
+            out[:, j] = np.abs(t_query[:, None] - ts[None, :]).min(axis=1) < reach
+    return out
+
+
 def _other_rate(col_a: dict, col_b: dict, fa: np.ndarray, fb: np.ndarray, markers: list[str]):
     """Where both views' frames carry times at different rates (median intervals more than
     1 % apart: a DICOM, TIFF or video of each C-arm at its own frame rate), frame k of one is
@@ -222,25 +252,15 @@ def _other_rate(col_a: dict, col_b: dict, fa: np.ndarray, fb: np.ndarray, marker
     count: B's tracks are then interpolated (PCHIP through each run of found frames, as the
     clock effects do) at every one of A's frame times.  Returns ``at(ta) -> (xb, suspect_b)``
     on A's frames, or None where the rates agree (frames pair by number)."""
-    def period(col, frames):
-        t = pd.Series(col["time_s"]).groupby(col["frame"]).first().reindex(frames).to_numpy(float)
-        d = np.diff(t[np.isfinite(t)])
-        return float(np.median(d)) if len(d) else np.nan
-
-    pa, pb = period(col_a, fa), period(col_b, fb)
-    if not (np.isfinite(pa) and np.isfinite(pb) and pa > 0 and pb > 0) or abs(pa / pb - 1.0) <= 0.01:
+    pb = frame_period(col_b["frame"], col_b["time_s"])
+    if not rates_differ(frame_period(col_a["frame"], col_a["time_s"]), pb):
         return None
     xb_own, tb_own, sb_own = _view_arrays(col_b, markers, fb)
 
     def at(ta):
         xb = _Interp(tb_own, xb_own)(ta)
         # a point interpolated within one of B's periods of a suspect B sample is suspect
-        sb = np.zeros(xb.shape[:2], bool)
-        for j in range(sb.shape[1]):
-            ts = tb_own[sb_own[:, j] & np.isfinite(tb_own)]
-            if len(ts):
-                sb[:, j] = np.abs(ta[:, None] - ts[None, :]).min(axis=1) < pb
-        return xb, sb & np.isfinite(xb).all(axis=2)
+        return xb, _flags_near(tb_own, sb_own, ta, pb) & np.isfinite(xb).all(axis=2)
 
     return at
 
@@ -1108,8 +1128,7 @@ def estimate_frame_steps(d: StereoData, max_offset_s: float | None = None, xb: n
     const = estimate_time_offset(d, max_offset_s, xb, smooth_frames)
     dt = float(const.get("frame_period_s") or (np.nanmedian(np.diff(d.ta)) if len(d.ta) > 1 else 1.0))
     delta0 = float(const["view_time_offset_s"])
-    out = {"view_time_offset_s": delta0, "frame_steps": [], "constant": const, "frame_period_s": dt,
-           "max_step_frames": max_step_frames}
+    out = {"view_time_offset_s": delta0, "frame_steps": [], "constant": const, "frame_period_s": dt}
     if max_step_frames is None:
         lim = float(const["search_s"][1])
         max_step_frames = min(max(5, math.ceil((lim + abs(delta0)) / dt - 1e-9)), 30) if dt > 0 else 5
@@ -1671,6 +1690,7 @@ def stereo_fit(d: StereoData, spec: StereoSpec, *, max_offset_s: float | None = 
         n_params += len(captures)
     offset, drift = 0.0, 0.0
     tq = None                                       # B's (time-corrected) times paired with A's frames
+    ta_s = d.ta                                     # A's times, the frames it lost put back
     if spec.time_offset or spec.clock_drift or spec.frame_steps or fixed_offset_s is not None:
         if fixed_offset_s is not None:
             offset = float(fixed_offset_s)
@@ -1706,13 +1726,7 @@ def stereo_fit(d: StereoData, spec: StereoSpec, *, max_offset_s: float | None = 
     sus_a, sus_b = d.suspect_a.copy(), d.suspect_b.copy()
     if (spec.time_offset or spec.clock_drift or spec.frame_steps) and tq is not None and np.any(tq != d.ta):
         # B's flags move with its samples: a suspect sample taints the interpolated points near it
-        sb_t = np.zeros_like(sus_b)
-        for j in range(M):
-            tsus = tb_s[sus_b[:, j] & np.isfinite(tb_s)]
-            if len(tsus):
-                near = np.abs(tq[:, None] - tsus[None, :]).min(axis=1) < np.nanmedian(np.diff(d.tb))
-                sb_t[:, j] = near
-        sus_b = sb_t
+        sus_b = _flags_near(tb_s, sus_b, tq, np.nanmedian(np.diff(d.tb)))
     drop = np.zeros((F, M), bool)
     if spec.occlusion:
         drop = sus_a | sus_b
@@ -1737,9 +1751,8 @@ def stereo_fit(d: StereoData, spec: StereoSpec, *, max_offset_s: float | None = 
                 n_single += int(one.sum())
         params["single_view_points"] = n_single
     # covariates: the 3-D velocity projected on the rays' common normal
-    # A's frames after frames A lost were taken later than their nominal times say
-    ta = stepped_times(d, params.get("frame_steps"))[0] if params.get("frame_steps") else d.ta
-    vel = _velocity(ta, X)
+    # (ta_s: A's frames after frames A lost were taken later than their nominal times say)
+    vel = _velocity(ta_s, X)
     nrm = r["normal"].reshape(F, M, 3)          # the rays' common normals (NaN where a view is missing)
     v_perp = np.einsum("fmk,fmk->fm", vel, nrm)
     speed = np.linalg.norm(vel, axis=2)
@@ -1747,7 +1760,7 @@ def stereo_fit(d: StereoData, spec: StereoSpec, *, max_offset_s: float | None = 
     order = np.argwhere(two.T)                       # marker-major, frames in order
     mi, fi = order[:, 0], order[:, 1]
     res = g[fi, mi]
-    rows = {"frame": np.repeat(d.frames[:, None], M, axis=1), "time_s": np.repeat(ta[:, None], M, axis=1),
+    rows = {"frame": np.repeat(d.frames[:, None], M, axis=1), "time_s": np.repeat(ta_s[:, None], M, axis=1),
             "marker": np.tile(np.array(d.markers, dtype=object)[None, :], (F, 1))}
     pts = pd.DataFrame({k: v.ravel() for k, v in rows.items()})
     pts["x_mm"], pts["y_mm"], pts["z_mm"] = X[..., 0].ravel(), X[..., 1].ravel(), X[..., 2].ravel()
@@ -1766,7 +1779,7 @@ def stereo_fit(d: StereoData, spec: StereoSpec, *, max_offset_s: float | None = 
         pts = pts.sort_values(["frame", "marker"], kind="stable").reset_index(drop=True)
     pts["marker"] = pts["marker"].astype(str)
     cov = {"v_perp_mm_s": np.nan_to_num(v_perp[fi, mi]), "speed_mm_s": np.nan_to_num(speed[fi, mi]),
-           "time_s": ta[fi]}
+           "time_s": ta_s[fi]}
     return StereoFit(spec, pts, res, params, n_params, cov, mi, fi, swaps, xb, frame_shifts=shifts,
                      captures=captures)
 
