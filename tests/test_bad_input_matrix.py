@@ -466,6 +466,9 @@ CASES: list[Case] = [
     _c("track-config-fps-inf", "track", "config fps: .inf (a frame rate must be finite)",
        lambda b, d: (["track", p := _config_edit(b.configs["track"], d / "t.yaml",
                                                   lambda c: c.update(fps=float("inf")))], p, "key 'fps'")),
+    _c("track-config-fps-1e300", "track", "config fps: 1e300 (the clock fits had overflowed: exit 1)",
+       lambda b, d: (["track", p := _config_edit(b.configs["track"], d / "t.yaml",
+                                                  lambda c: c.update(fps=1e300))], p, "key 'fps'")),
     # --- register (bsipipe/io/slicer.py, markers3d.csv)
     _c("register-two-references", "register", "two reference markers (three needed)",
        lambda b, d: (_register_args(b, refs=["R1", "R2"]), b.track / "markers3d.csv", None)),
