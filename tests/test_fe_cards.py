@@ -362,3 +362,21 @@ def test_febio_viscoelastic_wrapper():
     assert elastic.get("type") == "Ogden"
     stress_pa = uniaxial_stress(febio_energy(elastic), STRETCH) / u.per_pa
     assert_rel(stress_pa, reference("ogden2"), REL_TOL)
+
+
+def test_lsdyna_curve_fields_keep_a_blank_between_numbers():
+    """Reals that need every digit of their field (23.749827027260117 s, 24.749965405452024 mm)
+    had been written edge to edge, ``23.749827027260117524.749965405452023504``: legal for
+    LS-DYNA's column reader, unreadable to a person or a free-format reader.  Each real now
+    leaves a blank before it, and the columns still parse to the values."""
+    from bsipipe.io.lsdyna import lsdyna_curve
+
+    t = np.array([0.0, 23.749827027260117, 47.49965405452023504])
+    d = np.array([0.0, 24.749965405452023504, 0.0])
+    lines = lsdyna_curve(1, t, d).splitlines()[4:]
+    assert len(lines) == 3
+    for line, a, o in zip(lines, t, d):
+        assert line[0] == " " and (len(line) <= 20 or line[20] == " "), line
+        assert len(line.split()) == 2, line
+        x, y = float(line[:20]), float(line[20:40])          # the 20-column fields of the curve
+        assert x == pytest.approx(a, rel=1e-12) and y == pytest.approx(o, rel=1e-12, abs=0)

@@ -228,7 +228,10 @@ def _fixed(values: Sequence, widths: Sequence[int]) -> str:
                 raise ValueError(f"{v} does not fit in {w} columns")
             out.append(s)
         else:
-            out.append(field_real(v, w))
+            # one column short of the field, right-justified: a blank before every real, so
+            # two full-width numbers never run together (LS-DYNA reads the columns either
+            # way; a person, a diff or a free-format reader needs the gap)
+            out.append(f"{field_real(v, w - 1):>{w}}")
     return "".join(out).rstrip()
 
 
