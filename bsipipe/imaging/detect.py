@@ -414,17 +414,23 @@ def pixel_noise(frame: np.ndarray, mask: np.ndarray | None = None, step: int = 1
 def is_blank(frame: np.ndarray) -> bool:
     """A frame without a picture: its whole range of grey levels (max - min) is within 16
     sd of its own pixel noise (1.4826 MAD of Immerkaer's high-pass / 6, on every 4th row
-    and column), plus one level: a black or saturated frame (range 0) or dark noise only
-    (about 10 sd over a megapixel).  A frame with any marker, edge or field border spans far
+    and column), plus one grey level of an integer frame: a black or saturated frame (range
+    0) or dark noise only (about 10 sd over a megapixel).  A frame with any marker, edge or field border spans far
     more; a noiseless one (a rendering: MAD 0) is blank only if flat.
 
     >>> is_blank(np.zeros((64, 64), np.uint8)), is_blank(np.eye(64, dtype=np.uint8) * 200)
     (True, False)
+    >>> is_blank(np.eye(64, dtype=np.float32) * 0.8), is_blank(np.full((64, 64), 0.5, np.float32))
+    (False, True)
     """
     a = np.asarray(frame)
     r = _immerkaer(a, 4).ravel().astype(np.float64)
     sd = _MAD * float(np.median(np.abs(r - np.median(r)))) / 6.0 if r.size else 0.0
-    return float(a.max()) - float(a.min()) <= 16.0 * sd + 1.0
+    hi, lo = float(a.max()), float(a.min())
+    # one grey level of an integer frame; a float frame has no levels (scaled 0-1, a floor of
+    # 1.0 had called every frame blank): its rounding only
+    floor = 1.0 if np.issubdtype(a.dtype, np.integer) else 1e-9 * max(abs(hi), abs(lo))
+    return hi - lo <= 16.0 * sd + floor
 
 
 def _immerkaer(img: np.ndarray, step: int = 1) -> np.ndarray:
