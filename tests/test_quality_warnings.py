@@ -399,3 +399,34 @@ def test_calibration_mismatch_allows_for_the_loops_jolt_estimates():
         loop = {"final": {"reprojection_rms_px": factor * 1.01 * expected, "ray_gap_rms_mm": 0.1, "model": model}}
         w = _calibration_fit_warning(loop, table, 0.066, ("cam1", "cam2"))
         assert (w is not None) == warned, (model, factor)
+
+
+def test_calibration_mismatch_without_a_stereo_rms_in_the_file(twin, tmp_path):
+    """A calibration.json with no ``stereo.rms_px`` (another tool's, or a rig's true cameras)
+    had left the calibration-mismatch check out, unlogged: cam2's frames cropped 15 px
+    since the calibration (a frame grabber's offset) gave 3-D points about 3 mm off on the
+    probe's twin with only large-ray-gap flags.  0.5 px is assumed for such a file and the
+    warning says so; the same file uncropped says nothing."""
+    import cv2
+    cal = json.loads((twin / "calibrate/calibration.json").read_text())
+    del cal["stereo"]["rms_px"]
+    (tmp_path / "cal.json").write_text(json.dumps(cal))
+    cam2 = tmp_path / "cam2"
+    cam2.mkdir()
+    for f in sorted((twin / "synth/sequence/cam2").glob("*.png")):
+        img = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(cam2 / f.name), np.pad(img, ((0, 8), (0, 15)), mode="edge")[8:, 15:])
+    seeds = pd.read_csv(twin / "synth/seeds.csv")
+    seeds.loc[seeds["view"] == "cam2", "x_px"] -= 15.0
+    seeds.loc[seeds["view"] == "cam2", "y_px"] -= 8.0
+    seeds.to_csv(tmp_path / "seeds.csv", index=False)
+    for name, c2, s, warned in (("clean", twin / "synth/sequence/cam2", twin / "synth/seeds.csv", False),
+                                ("cropped", cam2, tmp_path / "seeds.csv", True)):
+        _invoke("track", "--view", f"cam1={twin / 'synth/sequence/cam1'}", "--view", f"cam2={c2}",
+                "--calibration", tmp_path / "cal.json", "--seeds", s, "--fps", "0.5", "-o", tmp_path / name)
+        res = json.loads((tmp_path / name / "track.json").read_text())
+        w = [w for w in res["warnings"] if w["code"] == "calibration-mismatch"]
+        print(name, [(x["reprojection_rms_px"], x["expected_px"]) for x in w])
+        assert bool(w) == warned, res["warnings"]
+        if warned:
+            assert w[0]["calibration_rms_assumed"] and "assumed: the file gives none" in w[0]["message"]

@@ -486,7 +486,7 @@ def _read_calibration(path, views: Sequence[str]):
     try:
         rms = float(st["rms_px"])
     except (KeyError, TypeError, ValueError):
-        rms = None          # no stereo RMS: the calibration-mismatch check is left out
+        rms = None          # no stereo RMS: the calibration-mismatch check assumes one
     try:
         return views_from_calibration(cal, order), order, rms if rms is not None and math.isfinite(rms) else None
     except (KeyError, ValueError, TypeError) as e:
@@ -502,6 +502,12 @@ CALIBRATION_FIT_FACTOR = 2.0
 #: that frame's few markers, and its error stays in the reprojection (the study's twin with 5 px
 #: jolts: 2.0 times, its 3-D error 0.02 mm; the moved and turned C-arms above are 4.1 and 5.8).
 CALIBRATION_FIT_FACTOR_JOLTS = 3.0
+#: The stereo RMS taken for a calibration that gives none (another tool's, or a rig's true
+#: cameras): the upper end of a usable C-arm calibration (the study's twin calibrates to 0.066
+#: px, OpenCV's real chessboard pair to 0.41).  The check had been left out for such a file: a
+#: view whose frames were cropped 15 px since its calibration gave 3-D points 3 mm off with no
+#: word; with 0.5 px assumed it reprojects 7 times what that explains.
+ASSUMED_CALIBRATION_RMS_PX = 0.5
 
 
 def _calibration_fit_warning(loop: dict, table: pd.DataFrame, cal_rms: float | None, pair) -> dict | None:
@@ -511,10 +517,12 @@ def _calibration_fit_warning(loop: dict, table: pd.DataFrame, cal_rms: float | N
     positions, times sqrt 2 for the two axes): the C-arms moved since they were calibrated, or
     the calibration is another setup's.  The ray-gap flags compare points with the sequence's
     own median, so an error common to every point passes them.  ``cal_rms``: the
-    calibration's stereo RMS (px; None: no check)."""
+    calibration's stereo RMS (px; None: the file gives none, and
+    :data:`ASSUMED_CALIBRATION_RMS_PX` is taken)."""
     from ..quality import warning
-    if cal_rms is None:
-        return None
+    assumed = cal_rms is None
+    if assumed:
+        cal_rms = ASSUMED_CALIBRATION_RMS_PX
     final = (loop or {}).get("final") or {}
     rms = final.get("reprojection_rms_px")
     found = table[table["found"] & table["view"].isin(pair)]
@@ -530,10 +538,12 @@ def _calibration_fit_warning(loop: dict, table: pd.DataFrame, cal_rms: float | N
     return warning(
         "calibration-mismatch",
         f"track: the two-view points reproject {rms:.3g} px RMS, {rms / expected:.1f} times what the calibration's "
-        f"own stereo RMS ({cal_rms:.3g} px) and the markers' centre error ({centre:.3g} px) explain; ray gap RMS "
+        f"own stereo RMS ({cal_rms:.3g} px{', assumed: the file gives none' if assumed else ''}) and the markers' "
+        f"centre error ({centre:.3g} px) explain; ray gap RMS "
         f"{final.get('ray_gap_rms_mm', float('nan')):.3g} mm: the C-arms moved since they were calibrated, or the "
         "calibration is another setup's; every 3-D point is off by about the ray gap", log,
-        reprojection_rms_px=rms, expected_px=expected, calibration_rms_px=cal_rms, centre_error_px=centre)
+        reprojection_rms_px=rms, expected_px=expected, calibration_rms_px=cal_rms, calibration_rms_assumed=assumed,
+        centre_error_px=centre)
 
 
 def _progress(total: int | None, desc: str, enabled: bool):
