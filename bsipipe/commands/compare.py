@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import os
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
@@ -220,7 +221,7 @@ def run(fe_displacements: str | os.PathLike, mesh: str | os.PathLike, markers: s
             skipped[n] = (f"outside the mesh (nearest element surface {loc.distance_mm[i]:.3g} mm away)"
                           if np.isfinite(loc.distance_mm[i]) else "outside the mesh")
         elif not np.all(np.isfinite(u_model[i])):
-            skipped[n] = "its element has a node without an FE displacement"
+            skipped[n] = f"its element has a node without a displacement in {Path(fe_displacements).name}"
         else:
             keep.append(i)
     if skipped:
@@ -229,6 +230,16 @@ def run(fe_displacements: str | os.PathLike, mesh: str | os.PathLike, markers: s
         units = _units_hint(fe_mesh.coords_mm, mf.position_mm, cfg.length_unit) if not loc.found.any() else None
         if units is not None:
             raise InputError(f"no marker lies in the mesh: {units}", path=mesh)
+        no_u = [i for i in range(len(mf.names)) if loc.found[i] and not np.all(np.isfinite(u_model[i]))]
+        if no_u:
+            # the markers are in the mesh; the displacement file lacks their elements' nodes
+            missing = int((~np.all(np.isfinite(nodal), axis=1)).sum())
+            others = [f"{k}: {v}" for k, v in skipped.items() if k not in {mf.names[i] for i in no_u}]
+            raise InputError(f"{missing} of the mesh's {len(nodal)} nodes have no displacement in this file, among "
+                             f"them nodes of the elements holding {', '.join(mf.names[i] for i in no_u)} in frame {F} "
+                             f"(is it the result of this mesh, {Path(mesh).name}, written for every node?)"
+                             + (f"; the other markers: {'; '.join(others)}" if others else ""),
+                             path=fe_displacements, frame=F)
         raise ProcessingError(f"no marker lies in the mesh with FE displacements in frame {F}: "
                               + "; ".join(f"{k}: {v}" for k, v in skipped.items()), path=mesh, frame=F)
     names = [mf.names[i] for i in keep]
