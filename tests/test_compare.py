@@ -589,3 +589,41 @@ def test_result_node_labels_the_mesh_lacks(tmp_path):
     res = json.loads((tmp_path / "b" / "compare.json").read_text())
     assert res["sigma_mm"] < 1e-6
     assert any(f"e.g. {ids.max() + 100})" in w for w in res["warnings"]), res["warnings"]
+
+
+def test_fe_times_on_the_xray_clock_are_warned():
+    """FE result times written on the X-ray clock (every time + 3.7448 s, the X-ray time of
+    FE time 0 in the deck header): the result nearest the peak frame's FE time had been
+    compared, 0.82 of the model's peak displacement (the probe: sigma 1.20 mm against the
+    true 1.54), with no warning.  The peak frame's result must be the model's peak; when it
+    is not, the offset is named, and the X-ray clock when it matches the header's zero."""
+    from bsipipe.fe.compare import choose_fe_result
+    t = np.arange(23) * 1.25
+    pv = np.minimum(t, 11.9) * 0.15 - np.maximum(t - 11.9, 0) * 0.08
+    xray = t + 3.7448
+    # the peak frame's FE time on the deck's clock: the model's peak, FE time 12.5
+    c = choose_fe_result(len(t), fe_times=xray, target_fe_time=12.51, time_tol=0.25, peak_values=pv,
+                         frame_is_peak=True, clock_zero=3.7448)
+    assert int(np.argmax(pv)) == 10 and c.index == 7
+    assert len(c.warnings) == 1 and "X-ray clock" in c.warnings[0] and f"--fe-result {int(np.argmax(pv))}" in c.warnings[0]
+    # the same times on the right clock: the chosen result is the peak, nothing said
+    ok = choose_fe_result(len(t), fe_times=t, target_fe_time=12.51, time_tol=0.25, peak_values=pv,
+                          frame_is_peak=True, clock_zero=3.7448)
+    assert ok.index == int(np.argmax(pv)) and ok.warnings == []
+    # shifted by something else: the shift is named, not the X-ray clock
+    c2 = choose_fe_result(len(t), fe_times=t + 6.0, target_fe_time=12.51, time_tol=0.25, peak_values=pv,
+                          frame_is_peak=True, clock_zero=3.7448)
+    assert any("not the FE results' peak" in w and "X-ray clock" not in w for w in c2.warnings), c2.warnings
+
+
+def test_scale_warning_blames_the_result_not_the_unit_when_another_result_fits():
+    """FE times halved picked the unloaded result (model displacement ~1e-10 mm) and the
+    warning had blamed a length unit (metres read as mm); with another result in the file
+    reaching the measured size it names the choice of result instead.  Metres throughout
+    still get the unit warning."""
+    from bsipipe.commands.compare import _scale_warning
+    meas = np.array([[0.0, 0.0, -0.9], [0.1, 0.0, -0.8]])
+    w = _scale_warning(meas * 1e-10, meas, peak_values=[0.2, 0.9, 1e-10])
+    assert w is not None and "not the measured frame's" in w and "length unit" not in w
+    w = _scale_warning(meas * 1e-3, meas, peak_values=[2e-4, 9e-4, 1e-13])
+    assert w is not None and "length unit" in w

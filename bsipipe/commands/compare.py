@@ -106,11 +106,14 @@ def _units_hint(nodes_mm: np.ndarray, markers_mm: np.ndarray, length_unit: str) 
     return None
 
 
-def _scale_warning(model_mm: np.ndarray, measured_mm: np.ndarray) -> str | None:
+def _scale_warning(model_mm: np.ndarray, measured_mm: np.ndarray, peak_values=None) -> str | None:
     """A warning where the model's displacements at the markers are a hundredth of the
     measured ones or less (or a hundred times or more), median over the markers: a length
     unit the FE result was written in other than the mesh's (metres read as mm), not a model
-    that is merely stiff or soft."""
+    that is merely stiff or soft -- unless another of the FE results (``peak_values``: each
+    one's mean displacement at the markers) is within that range: then the result compared is
+    the wrong one (FE result times halved had picked the unloaded state, and the warning had
+    blamed the length unit)."""
     m = np.linalg.norm(model_mm, axis=1)
     d = np.linalg.norm(measured_mm, axis=1)
     if not (np.median(m) > 0 and np.median(d) > 0):
@@ -118,6 +121,13 @@ def _scale_warning(model_mm: np.ndarray, measured_mm: np.ndarray) -> str | None:
     r = float(np.median(m) / np.median(d))
     if 0.01 < r < 100:
         return None
+    pv = np.asarray(peak_values if peak_values is not None else [], dtype=float)
+    pv = pv[np.isfinite(pv) & (pv > 0)]
+    if len(pv) and np.any((pv / np.median(d) > 0.01) & (pv / np.median(d) < 100)):
+        return (f"the model's displacements at the markers are {r:.3g} times the measured ones (medians "
+                f"{np.median(m):.3g} and {np.median(d):.3g} mm), while other FE results in the file reach "
+                f"{pv.max():.3g} mm: the result compared is not the measured frame's (its time, or the frame, is "
+                "off; see --fe-result)")
     return (f"the model's displacements at the markers are {r:.3g} times the measured ones (medians "
             f"{np.median(m):.3g} and {np.median(d):.3g} mm): the FE result is likely in another length unit than "
             "the mesh (metres read as mm?); sigma is not meaningful until they agree")
@@ -201,7 +211,8 @@ def run(fe_displacements: str | os.PathLike, mesh: str | os.PathLike, markers: s
     choice = choose_fe_result(last.n_results, given=cfg.fe_result,
                               fe_times=[r.time for r in results] if clock["target_fe_time"] is not None else None,
                               target_fe_time=clock["target_fe_time"], time_tol=clock["time_tol"],
-                              peak_values=peak_values, frame_is_peak=peak is not None and F == peak.frame)
+                              peak_values=peak_values, frame_is_peak=peak is not None and F == peak.frame,
+                              clock_zero=clock["clock_zero"])
     if clock["warning"]:
         warnings.append(clock["warning"])
     warnings += choice.warnings
@@ -244,7 +255,7 @@ def run(fe_displacements: str | os.PathLike, mesh: str | os.PathLike, markers: s
                               + "; ".join(f"{k}: {v}" for k, v in skipped.items()), path=mesh, frame=F)
     names = [mf.names[i] for i in keep]
     res = compare_displacements(names, u_model[keep], mf.measured_mm[keep])
-    scale = _scale_warning(u_model[keep], mf.measured_mm[keep])
+    scale = _scale_warning(u_model[keep], mf.measured_mm[keep], peak_values)
     if scale:
         warnings.append(scale)
 
@@ -345,7 +356,7 @@ def _fe_clock(table: pd.DataFrame, frame: int, time_s: float | None, header: dic
     """Frame ``frame``'s time on the FE clock (``target_fe_time``, None when not known), the
     tolerance of a match (half the marker table's frame interval, FE time units), where the
     clock came from (``source``) and a ``warning`` when the FE file's times cannot be used."""
-    out = {"target_fe_time": None, "time_tol": 0.0, "source": None, "warning": None}
+    out = {"target_fe_time": None, "time_tol": 0.0, "source": None, "warning": None, "clock_zero": None}
     per_s = _PER_S.get(header.get("fe_time_unit", "s"))
     if per_s is None:
         out["warning"] = f"the deck's FE time unit {header['fe_time_unit']!r} is unknown: FE times not matched"
@@ -369,6 +380,7 @@ def _fe_clock(table: pd.DataFrame, frame: int, time_s: float | None, header: dic
             out["warning"] = f"the deck's fe_time_zero_xray_s {header['fe_time_zero_xray_s']!r} is not a number"
             return out
         out["target_fe_time"] = (time_s - t0) * per_s
+        out["clock_zero"] = t0 * per_s
         out["source"] = (f"the marker table's time_s minus the X-ray time of FE time 0 in the deck's header "
                          f"({t0:.6g} s)")
     return out

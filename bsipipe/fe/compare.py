@@ -198,7 +198,8 @@ class FEResultChoice:
 
 def choose_fe_result(n_results: int, *, given: int | None = None, fe_times=None,
                      target_fe_time: float | None = None, time_tol: float = 0.0,
-                     peak_values=None, frame_is_peak: bool = False) -> FEResultChoice:
+                     peak_values=None, frame_is_peak: bool = False,
+                     clock_zero: float | None = None) -> FEResultChoice:
     """Which of ``n_results`` FE results (file order) to set against the measured frame.
 
     In order: ``given`` (0-based, negative from the end); the only one (with a warning when
@@ -207,6 +208,10 @@ def choose_fe_result(n_results: int, *, given: int | None = None, fe_times=None,
     clock), with a warning when it is more than ``time_tol`` away or outside the results'
     span; for the peak frame (``frame_is_peak``), the result of the largest ``peak_values``
     (n,: the mean model displacement at the compared markers); else the last, with a warning.
+    A result chosen by time for the peak frame that is not the FE results' peak (more than 10 %
+    less mean displacement, the peak more than ``time_tol`` away) is warned: the FE times run
+    on another clock; ``clock_zero`` (the marker clock's time of FE time 0, FE units), when the
+    offset matches it, names the marker clock.
 
     >>> choose_fe_result(3, fe_times=[1.0, 2.0, 3.0], target_fe_time=2.1, time_tol=0.25).index
     1
@@ -254,6 +259,23 @@ def choose_fe_result(n_results: int, *, given: int | None = None, fe_times=None,
         elif gap > time_tol:
             warnings.append(_gap_warning("the compared FE result", float(times[k]), target_fe_time, time_tol)
                             + ": write FE results more often or choose another frame")
+        pv = None if peak_values is None else np.asarray(peak_values, dtype=float)
+        if frame_is_peak and pv is not None and len(pv) == len(times) and np.isfinite(pv).any():
+            # the measured frame is the markers' peak: the FE result at its time should be the
+            # model's.  FE times written on the X-ray clock had been matched to the wrong result
+            # (0.82 of the peak's displacement, sigma 1.20 mm against 1.54), unsaid
+            p = int(np.nanargmax(pv))
+            off = float(times[p]) - target_fe_time
+            if p != k and pv[k] < 0.9 * pv[p] and abs(off) > time_tol:
+                hint = ""
+                if clock_zero is not None and abs(off - clock_zero) <= max(time_tol, 1e-9 * abs(clock_zero)):
+                    hint = (f"; the offset is the X-ray time of FE time 0 in the deck's header ({clock_zero:.6g}): "
+                            "the FE results' times look counted on the X-ray clock")
+                warnings.append(
+                    f"the FE result at the measured (peak) frame's FE time ({times[k]:.6g}, mean model displacement "
+                    f"{pv[k]:.3g} mm) is not the FE results' peak (FE time {times[p]:.6g}, {pv[p]:.3g} mm), "
+                    f"{abs(off):.3g} {'later' if off > 0 else 'earlier'}: the FE results' times do not follow the "
+                    f"deck's clock (shifted or scaled){hint}; compare result {p} with --fe-result {p} if so")
     return FEResultChoice(k, why, target_fe_time, warnings)
 
 
