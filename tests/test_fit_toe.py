@@ -37,7 +37,7 @@ def _flat_force(u_mm):
 
 
 def _toe_log(kind: str, toe_mm: float, power: float, *, gap_mm=0.5, speed_mm_s=10 / 60, rate_hz=10.0,
-             strain=0.3, seed=1):
+             strain=0.3, seed=1, noise_n=NOISE_N):
     rng = np.random.default_rng(seed)
     t = np.arange(0.0, (gap_mm + strain * H_MM) / speed_mm_s + 1e-12, 1.0 / rate_hz)
     x = speed_mm_s * t
@@ -50,7 +50,7 @@ def _toe_log(kind: str, toe_mm: float, power: float, *, gap_mm=0.5, speed_mm_s=1
         frac = np.clip(fine / toe_mm, 0.0, 1.0) ** power
         integral = np.concatenate([[0.0], np.cumsum(0.5 * (frac[1:] + frac[:-1]) * np.diff(fine))])
         f = _flat_force(np.interp(u, fine, integral))
-    return t, x, f + NOISE_N * rng.standard_normal(t.size)
+    return t, x, f + noise_n * rng.standard_normal(t.size)
 
 
 def _detected(t, x, f):
@@ -77,6 +77,25 @@ def test_loop_names_contact_offset_for_an_uneven_top(kind, toe_mm, power):
           f"s {np.round(ci['contact_toe_spread'], 2)}")
     assert ci["contact_toe_mm"][0] <= toe_mm / 2 <= ci["contact_toe_mm"][1]
     assert ci["contact_toe_exponent"][0] <= power <= ci["contact_toe_exponent"][1]
+
+
+@pytest.mark.parametrize("seed", [4, 101])
+def test_a_nuisance_parameter_moving_is_no_evidence(seed):
+    """The probe's toe at 3 mN noise and 4 mm/min (area growing linearly over 0.4 mm): the
+    residual is within a few per cent of the noise, contact-offset (delta BIC 43.5) lowers the
+    RMSE by 4.6 %, under the 5 % bar, and viscoelastic-relaxation (delta BIC 28.5, RMSE 2.9 %)
+    had been kept on the parameter-shift rule because it moved contact_offset_mm, the contact
+    already in the model, 3.5 half-widths: mu 1238 Pa for a true 720.  Only the tissue's own
+    parameters count now; no Prony term is invented."""
+    lg = _detected(*_toe_log("area", 0.4, 1.0, speed_mm_s=4 / 60, noise_n=3e-3, strain=0.3, seed=seed))
+    rep = close_loop_logs([lg], ForceModelSpec())
+    p = rep.final.params
+    shifts = [t.get("param_shift", {}).get("name") for rnd in rep.tried for t in rnd
+              if t.get("criterion") == "params" and t.get("passes")]
+    print(f"\nseed {seed}: effects {rep.effects}, mu {p['mu_pa']:.1f}, alpha {p['alpha']:.3f}, kept on shifts of {shifts}")
+    assert "viscoelastic-relaxation" not in rep.effects
+    assert all(n in ("mu_pa", "alpha") for n in shifts)
+    assert abs(p["mu_pa"] - MU) < 0.06 * MU and abs(p["alpha"] - ALPHA) < 0.1
 
 
 def test_contact_compression_family():

@@ -325,14 +325,17 @@ def _weigh(effect: Effect, before: LoopState, after: LoopState, rule: SelectionR
 def _param_shift(before: LoopState, after: LoopState) -> dict | None:
     """The declared parameter the candidate moves most, in 95 % half-widths (the larger of the
     two fits'), where the stage's fits report ``values`` and ``ci95`` (flat name -> value,
-    [low, high]); None otherwise."""
+    [low, high]); None otherwise.  Where the fit names its ``declared_params`` (the quantities
+    the stage reports: a tissue's law, not the nuisance parameters of the effects already in
+    the model), only those count."""
     vb, va = getattr(before.fit, "values", None), getattr(after.fit, "values", None)
     cb, ca = getattr(before.fit, "ci95", None), getattr(after.fit, "ci95", None)
     if not (isinstance(vb, Mapping) and isinstance(va, Mapping) and isinstance(cb, Mapping) and isinstance(ca, Mapping)):
         return None
+    declared = getattr(before.fit, "declared_params", None)
     best = None
     for k, x0 in vb.items():
-        if k not in va or k not in cb or k not in ca:
+        if k not in va or k not in cb or k not in ca or (declared is not None and k not in declared):
             continue
         try:
             hw = max(0.5 * (float(cb[k][1]) - float(cb[k][0])), 0.5 * (float(ca[k][1]) - float(ca[k][0])))

@@ -326,6 +326,14 @@ class FitResult:
     n_starts: int = 0
     kind: str = "logs"                                   # "logs" | "tables"
 
+    @property
+    def declared_params(self) -> list[str]:
+        """The tissue's own parameters (the law's and the Prony terms'), the ones the loop's
+        parameter-shift criterion weighs: an effect's nuisance parameters (a contact offset, a
+        baseline) moving says nothing of the material (the toe probe: viscoelastic relaxation
+        kept because it moved contact_offset_mm 3.5 half-widths, mu 1238 Pa for a true 720)."""
+        return list(get_law(self.spec.law).param_names) + prony_names(self.spec.prony)
+
     def tissue_params(self) -> dict:
         """The law's parameters and the Prony list only (what an FE card needs)."""
         law = get_law(self.spec.law)
