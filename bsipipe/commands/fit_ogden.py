@@ -247,6 +247,17 @@ def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig):
                                      f"{len(ramps)} loading ramps)")
         else:
             record["fitted_part"] = "whole record"
+        clip = clipped_top(disp, force)
+        if clip is not None:
+            # the load cell (or the export's range) clipped: the samples from the first at the
+            # clip level on are no measurement of the tissue; the fit stops before them
+            first = clip["first"]
+            record["load_clipped"] = {**{k: v for k, v in clip.items() if k != "first"},
+                                      "first_line": ml.line_of(rows[first]),
+                                      "displacement_mm": float(disp[first])}
+            time_s, disp, force = time_s[:first], disp[:first], force[:first]
+            record["fitted_part"] += (f"; up to line {ml.line_of(rows[first - 1])}, the last sample before the load "
+                                      f"clipped at {clip['level_n']:.6g} N")
         name = Path(p).stem
         tared = False
         if given is None:
@@ -303,6 +314,57 @@ def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig):
                        "sign_from": ml.dialect.get("sign_from"),
                        "specimen_label": ml.metadata.get("Specimen label")})
     return logs, inputs
+
+
+#: A clipped top needs at least this many samples at the record's largest force, exactly.
+CLIP_MIN_SAMPLES = 3
+
+
+def clipped_top(disp: np.ndarray, force: np.ndarray, n_before: int = 20) -> dict | None:
+    """Where a log's force stops at a ceiling: a load cell at the end of its range (or an
+    export's) reads one value, exactly, while the platen goes on compressing.  The test: at
+    least :data:`CLIP_MIN_SAMPLES` samples at the record's largest force to the last digit,
+    spread over a travel along which the ``n_before`` samples before the first of them rise by
+    more than 3 times the larger of their scatter and the log's force resolution (so a coarse
+    log whose top few samples round alike, or a hold, is not called clipped).  Returns the
+    first such sample's index, the level (N), the count and that expected rise, or None.
+
+    A 0.5 N ceiling on 18 of 616 samples (the last 3 %) of the probe's log had been fitted as
+    a machine compliance of 1.39 mm/N with alpha turned to +19.4, unsaid.
+
+    >>> d = np.linspace(0, 3, 301); f = np.minimum(0.05 * d ** 3, 1.0)
+    >>> c = clipped_top(d, f); c["first"], c["n_samples"]
+    (272, 29)
+    >>> clipped_top(d, 0.05 * d ** 3) is None
+    True
+    """
+    f = np.asarray(force, float)
+    x = np.asarray(disp, float)
+    if len(f) < n_before + CLIP_MIN_SAMPLES:
+        return None
+    top = float(np.max(f))
+    at = f >= top - 1e-12 * abs(top)
+    idx = np.flatnonzero(at)
+    first = int(idx[0])
+    if len(idx) < CLIP_MIN_SAMPLES or first < n_before:
+        return None
+    span = float(np.ptp(x[idx]))
+    if not span > 0:                      # a hold at one displacement is no clipping
+        return None
+    pre = slice(first - n_before, first)
+    xp, fp = x[pre], f[pre]
+    if not np.ptp(xp) > 0:
+        return None
+    slope, icpt = np.polyfit(xp, fp, 1)
+    scatter = float(np.std(fp - (slope * xp + icpt), ddof=2))
+    levels = np.unique(f)
+    steps = np.diff(levels)
+    resolution = float(steps[steps > 0].min()) if np.any(steps > 0) else 0.0
+    rise = float(slope) * span
+    if not rise > 3.0 * max(scatter, resolution):
+        return None
+    return {"first": first, "level_n": top, "n_samples": int(len(idx)), "travel_mm": span,
+            "expected_rise_n": rise}
 
 
 def _zeroed_loaded(force: np.ndarray, n: int = 10) -> bool:
@@ -524,6 +586,25 @@ def _geometry_disagrees(input_info: list[dict]) -> list[dict]:
                     f"{k} {info[k]:g} given, {meta:g} mm in the log's metadata" for k, meta in said.items())
                 + ": the size given is used (options win); stress and stretch scale with it, so check which is "
                   "the specimen's", log, log_name=info["path"], given={k: info[k] for k in said}))
+    return out
+
+
+def _load_clipped(input_info: list[dict]) -> list[dict]:
+    """A ``load-clipped`` warning for each log whose force stops at a ceiling
+    (:func:`clipped_top`): the fit ends before it."""
+    from ..quality import warning
+    out = []
+    for info in input_info:
+        c = info.get("load_clipped")
+        if c:
+            out.append(warning(
+                "load-clipped",
+                f"fit-ogden: {Path(info['path']).name}: the load reads {c['level_n']:.6g} N, exactly, on "
+                f"{c['n_samples']} samples from line {c['first_line']} while the platen travels {c['travel_mm']:.3g} "
+                f"mm on, over which the samples before rise {c['expected_rise_n']:.3g} N: the load cell (or the "
+                f"export) clipped at the end of its range; the fit stops before it, at "
+                f"{c['displacement_mm']:.4g} mm; use a larger cell or a shallower test to fit the rest", log,
+                log_name=info["path"], level_n=c["level_n"], n_samples=c["n_samples"], first_line=c["first_line"]))
     return out
 
 
@@ -859,7 +940,8 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
     }
     result["warnings"] = _fit_quality(final)
     if kind == "logs":
-        result["warnings"] += _spikes_left_out(input_info) + _contacts_moved(input_info) + _geometry_disagrees(input_info)
+        result["warnings"] += (_spikes_left_out(input_info) + _load_clipped(input_info) + _contacts_moved(input_info)
+                               + _geometry_disagrees(input_info))
         if boundary_said is not None:
             result["boundary_check"] = boundary_said["evidence"]
             if boundary_said.get("warning"):

@@ -401,6 +401,41 @@ def force_noise_rms(logs: Sequence[LogData]) -> float | None:
     return float(np.sqrt(var / n)) if n else None
 
 
+#: An effect's parameters that may not end on these edges of their ranges (name prefix ->
+#: edges): a toe as long as a tenth of the specimen, a relaxation of g = 0.98, a compliance
+#: whose deflection is half the specimen, a relaxation time at the record's bounds -- the
+#: mechanism asked for more than it can be, so it is standing in for something else.
+_EDGES_REFUSED = {"contact_toe_mm": ("upper",), "g": ("upper",), "compliance_mm_per_n": ("upper",),
+                  "tau": ("lower", "upper")}
+
+
+def _refused_edge(name: str, edge: str) -> bool:
+    base = name.split("[")[0]
+    for prefix, edges in _EDGES_REFUSED.items():
+        if edge in edges and (base == prefix or (prefix in ("g", "tau") and base.startswith(prefix)
+                                                 and base[len(prefix):len(prefix) + 1].isdigit())):
+            return True
+    return False
+
+
+def effect_veto(before, after) -> str | None:
+    """fit-ogden's veto (:func:`~bsipipe.loop.run_loop` ``veto``): a parameter the candidate adds
+    that ended on a refused edge of its range (:data:`_EDGES_REFUSED`): an elastic two-term
+    truth (mu 500 / 220 Pa, alpha -8 / +2, the probe's log) had been given a relaxation of
+    g = 0.98 at tau 66 s, mu 776 Pa.  (The sign of an Ogden exponent is no such test: a toe
+    fitted as a flat top bends the curve to alpha +11.8, and contact-offset rightly turns it
+    to -4.69; a two-term truth's sign turned by a toe is a tie the data cannot break, which
+    :func:`~bsipipe.loop.run._preference` gives to the fewer parameters.)"""
+    new = set(getattr(after.fit, "values", {}) or {}) - set(getattr(before.fit, "values", {}) or {})
+    edges = getattr(after.fit, "at_bound", {}) or {}
+    hit = sorted(k for k in new if k in edges and _refused_edge(k, edges[k]))
+    if hit:
+        va = after.fit.values
+        return ("its " + ", ".join(f"{k} = {va[k]:.3g} ({edges[k]} end of its range)" for k in hit)
+                + ": the mechanism asked for more than it can be, standing in for something it does not describe")
+    return None
+
+
 def close_loop_logs(logs: Sequence[LogData], spec0: ForceModelSpec, *, boundary_declared: bool = True,
                     width: WidthSeries | None = None, max_strain: float | None = None,
                     rule: SelectionRule = SelectionRule(), candidates: Sequence[Effect] | None = None,
@@ -431,7 +466,8 @@ def close_loop_logs(logs: Sequence[LogData], spec0: ForceModelSpec, *, boundary_
     return run_loop(fitter.fit, spec0, candidates,
                     heldout=fitter.heldout_rmse if len(fitter.logs) > 1 else None,
                     covariates=lambda res: log_covariates(fitter.logs, res.used),
-                    describe=lambda s: s.describe(), unit="n", rule=rule, noise_rms=force_noise_rms(fitter.logs))
+                    describe=lambda s: s.describe(), unit="n", rule=rule, noise_rms=force_noise_rms(fitter.logs),
+                    veto=effect_veto)
 
 
 # --- the loop on stress-stretch tables ---------------------------------------------------------

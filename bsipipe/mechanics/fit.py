@@ -325,6 +325,7 @@ class FitResult:
     message: str = ""
     n_starts: int = 0
     kind: str = "logs"                                   # "logs" | "tables"
+    at_bound: dict = field(default_factory=dict)         # flat name -> "lower" | "upper": ended on its range's edge
 
     @property
     def declared_params(self) -> list[str]:
@@ -1223,9 +1224,24 @@ def _solve(problem: _Problem, starts: list[dict], *, seed: int, bootstrap: int) 
                     residuals=problem.raw_residuals(values), n_obs=n, n_params=p, aic=aic, bic=bic, cov=cov,
                     success=success, param_names=list(problem.names), values=values,
                     fitted=_fitted_frames(problem, values), used=list(problem.used),
-                    message=str(res.message), n_starts=n_ok, kind=problem.kind)
+                    message=str(res.message), n_starts=n_ok, kind=problem.kind,
+                    at_bound=_at_bound(problem.names, theta, bnds))
     if bootstrap and success:
         out.ci95_bootstrap, out.bootstrap = _bootstrap(problem, values, bootstrap, seed)
+    return out
+
+
+def _at_bound(names, theta, bnds, rel: float = 1e-6) -> dict:
+    """The parameters that ended on an edge of their range (within ``rel`` of its width, or of
+    the value where the range is unbounded on that side): ``name -> "lower" | "upper"``."""
+    out = {}
+    for k, t, lo, hi in zip(names, theta, *bnds):
+        width = hi - lo if np.isfinite(hi - lo) else max(abs(t), 1.0)
+        tol = rel * width
+        if np.isfinite(lo) and t <= lo + tol:
+            out[k] = "lower"
+        elif np.isfinite(hi) and t >= hi - tol:
+            out[k] = "upper"
     return out
 
 
