@@ -2161,6 +2161,18 @@ def window_arrays(frame: np.ndarray, centres_xy, radii_px, diameter_px: float, p
     ys, xs = np.divmod(np.flatnonzero(peak), n * W)
     floor = np.repeat(med.astype(np.float32), W)        # each window's floor, by strip column
     xs, ys, area = _peak_areas(ts, xs, ys, diameter_px, floor, st)
+    if st.min_roundness is not None and len(xs):
+        # a ridge away from the window's centre is no marker (the whole-frame search's test): a
+        # thin wire crossing a window gives peaks along its top-hat ridge, and a marker hidden
+        # 7 px from one had been taken onto it and followed along it, 7-50 px off, as "found".
+        # Within a diameter of the centre (the prediction) a candidate stays whatever its
+        # shape: two markers passing close merge into one elongated image, and a marker on a
+        # line is still that marker
+        far = (xs % W - half) ** 2 + (ys - half) ** 2 > max(diameter_px, 3.0) ** 2
+        if far.any():
+            rnd = ~far
+            rnd[far] = curvature_ratio(ts, xs[far], ys[far], max(3.0, 0.75 * diameter_px)) >= st.min_roundness
+            xs, ys, area = xs[rnd], ys[rnd], area[rnd]
     if len(xs) == 0:
         return {k: np.zeros(0) for k in COLUMNS}
     # pixel noise of each window (Immerkaer; exact integers from 8/16-bit pixels), for the SNR
