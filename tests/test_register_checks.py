@@ -240,9 +240,28 @@ def test_ct_in_other_length_units_is_invalid_input(tmp_path, factor, units):
     if units is None:
         assert r.exit_code == 0, r.output
         assert res["scale"] == pytest.approx(factor, rel=0.005)
+        assert "large-scale" not in _codes(res)
     else:
         assert r.exit_code == 2 and "ct.fcsv" in r.output and f"look like {units}" in r.output
         assert not (tmp_path / "out").exists()
+
+
+def test_ct_in_voxel_indices_is_a_large_scale_warning(tmp_path):
+    """CT coordinates as isotropic voxel indices of 0.8 mm (x / 0.8 from the volume's origin):
+    the spread ratio, 1.25, is within what the length-unit check allows, and the loop's scale
+    took it as a magnification (scale 1.25, FRE 0.007 mm on the probe's study), every
+    displacement of markers_ct.csv 25 % too large, exit 0 without a word.  Beyond 5 % the
+    scale is warned (large-scale), naming voxel indices."""
+    def edit(ct):
+        o = np.min([ct[n] for n in ct], axis=0) - 5.0
+        for n in ct:
+            ct[n] = (ct[n] - o) / 0.8
+    _trial(tmp_path, ct_edit=edit)
+    r, res = _register(tmp_path, REFS4)
+    assert r.exit_code == 0, r.output
+    assert res["scale"] == pytest.approx(1.25, rel=0.005)
+    w = [w for w in res["warnings"] if w["code"] == "large-scale"]
+    assert len(w) == 1 and "voxel indices" in w[0]["message"] and "0.8 mm" in w[0]["message"], res["warnings"]
 
 
 @pytest.mark.parametrize("where", ["ct", "xray"])

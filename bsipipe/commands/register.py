@@ -384,6 +384,10 @@ def _check_handedness(xray: dict, ct: dict, *, scale: bool, ct_path, system, ref
 #: magnification error (a C-arm's source distance or pixel size off by tens of per cent at
 #: most); beyond it the files' lengths are in different units.
 MAX_SPREAD_RATIO = 2.0
+#: A fitted scale further than this from 1 is warned (``large-scale``): a C-arm calibration's
+#: magnification error is a few per cent; CT coordinates in voxel indices of 0.8 mm voxels had
+#: been registered with scale 1.25 and FRE 0.007 mm, every displacement 25 % too large, unsaid.
+MAX_PLAUSIBLE_SCALE_ERROR = 0.05
 #: RMS distance (mm) of reference markers from their centroid that a skull's craniotomy can
 #: hold (beads millimetres to centimetres apart); beyond it, in one file and not the other,
 #: that file's coordinates are in other units.
@@ -725,6 +729,15 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
                         f"the transform is wrong (references swapped or moved), those markers are mislabelled, "
                         f"or the brain shifted since the CT", log,
             markers=bad, expected_mm=check_scale, limit_mm=check_limit))
+
+    if abs(float(T.scale) - 1.0) > MAX_PLAUSIBLE_SCALE_ERROR:
+        warnings.append(warning(
+            "large-scale",
+            f"register: the registration's scale is {T.scale:.4g}: the CT and X-ray lengths differ by "
+            f"{100 * abs(T.scale - 1):.0f} %, more than a C-arm calibration's magnification error (a few per cent); "
+            f"are the CT coordinates ({ct}) voxel indices (isotropic voxels of {1 / T.scale:.3g} mm would give "
+            f"this), or the CT's voxel size or the calibration target's spacing given wrong?  markers_ct.csv is in "
+            "the CT file's units", log, scale=float(T.scale), limit=MAX_PLAUSIBLE_SCALE_ERROR))
 
     result = {
         "R": T.R.tolist(), "t_mm": T.t_mm.tolist(), "scale": float(T.scale),
