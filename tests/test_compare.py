@@ -627,3 +627,17 @@ def test_scale_warning_blames_the_result_not_the_unit_when_another_result_fits()
     assert w is not None and "not the measured frame's" in w and "length unit" not in w
     w = _scale_warning(meas * 1e-3, meas, peak_values=[2e-4, 9e-4, 1e-13])
     assert w is not None and "length unit" in w
+
+
+def test_an_axis_with_its_sign_turned_is_warned():
+    """uz negated in the FE displacements (another convention, an axis flipped on export):
+    sigma 3.34 mm for 1.54 on the probe's study, unsaid.  An axis that runs opposite at the
+    markers, whose turning would halve sigma, is named; a model merely off is not."""
+    from bsipipe.commands.compare import _axis_sign_warning
+    meas = np.array([[0.84, -0.21, -4.0], [0.54, -0.07, -0.40], [-0.17, -0.01, -0.56]])
+    model = meas * [1.0, 1.0, -1.0] + 0.05
+    w = _axis_sign_warning(model, meas)
+    assert w is not None and "z displacements run opposite" in w
+    assert _axis_sign_warning(meas * 0.7 + 0.1, meas) is None           # a stiffer model: no word
+    assert "x displacements" in _axis_sign_warning(meas * [-1.0, 1.0, 1.0], meas)
+    assert _axis_sign_warning(meas * [1.0, -1.0, 1.0], meas) is None     # y carries too little to tell
