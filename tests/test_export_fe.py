@@ -483,3 +483,22 @@ def test_clock_offset_mirror_of_a_ramp_unload_log_is_told_apart_by_the_brain():
     C = rest + e[:, None] * axis + rng.normal(0, 0.004, (len(t_long), 3))
     one = fit_alignment(t_long, C, log, ahead_mm=brain)
     assert one.alternatives == () and one.choice is None and abs(one.clock_offset_s - true_off) < 0.1
+
+
+def test_a_hold_in_the_ramp_is_named_and_left_out_of_the_speed():
+    """A 3 s hold at 15 s in a 12 mm/min ramp (the probe's log): the least-squares slope over
+    the hold gave 9.995 mm/min, a failed speed check that never named the pause.  The hold is
+    found (ramp_holds) and the speed is the moving samples' (12.0); a ramp without one is as
+    before."""
+    from bsipipe.fe.export import ContactWindow, LogRecord, ramp_holds, ramp_speed_mm_per_min
+    t = np.arange(0.0, 30.0, 0.05)
+    v = 12.0 / 60.0
+    e = np.where(t < 15.0, v * t, np.where(t < 18.0, v * 15.0, v * (t - 3.0)))
+    log = LogRecord(t, e, np.zeros_like(t))
+    w = ContactWindow(0, 0.0, 0.0, float(t[-1]), False, 0.0, "given", len(t) - 1)
+    holds = ramp_holds(log, w)
+    assert len(holds) == 1 and holds[0]["start_s"] == pytest.approx(15.0, abs=0.06)
+    assert holds[0]["duration_s"] == pytest.approx(3.0, abs=0.1)
+    assert ramp_speed_mm_per_min(log, w) == pytest.approx(12.0, rel=1e-6)
+    plain = LogRecord(t, v * t, np.zeros_like(t))
+    assert ramp_holds(plain, w) == [] and ramp_speed_mm_per_min(plain, w) == pytest.approx(12.0, rel=1e-9)
