@@ -900,8 +900,15 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
     final = final_boot
 
     if kind == "logs":
+        from ..mechanics.fit import scatter_factors
+        factors = scatter_factors(final.values, len(input_info)) if final.spec.specimen_scatter else None
         for i, (info, used) in enumerate(zip(input_info, final.used)):
             info["n_fitted"] = int(used.sum())
+            if factors is not None:
+                # specimen-scatter: this specimen's moduli, the law's times its factor
+                info["specimen_stiffness_factor"] = float(factors[i])
+                info["specimen_params"] = {k: float(v) * (float(factors[i]) if k.endswith("_pa") else 1.0)
+                                           for k, v in final.tissue_params().items() if not isinstance(v, list)}
             given = info["contact"].get("method", "").startswith("given")
             info.update(_refined_contact(final, i, len(input_info), info["contact_mm"], given,
                                          info["contact"].get("displacement_sd_mm")))

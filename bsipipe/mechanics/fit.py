@@ -275,6 +275,7 @@ class ForceModelSpec:
     baseline_drift: bool = False
     compliance: bool = False
     refine_contact: bool = True
+    specimen_scatter: bool = False
 
     def __post_init__(self):
         get_law(self.law)
@@ -290,7 +291,8 @@ class ForceModelSpec:
         s = self.law + (f"+prony{self.prony}" if self.prony else "")
         extra = [self.boundary] if self.boundary != "frictionless" else []
         extra += [n for n, on in (("contact-offset", self.contact_offset), ("load-baseline-drift", self.baseline_drift),
-                                  ("machine-compliance", self.compliance)) if on]
+                                  ("machine-compliance", self.compliance), ("specimen-scatter", self.specimen_scatter))
+                  if on]
         return s + (f" ({', '.join(extra)})" if extra else "")
 
 
@@ -353,6 +355,11 @@ class FitResult:
                     out[base] = v
             else:
                 out[k] = v
+        if getattr(self.spec, "specimen_scatter", False) and SCATTER_NAME not in out:
+            # the last log's factor: minus the others' logarithms
+            z = [v for k, v in self.values.items() if k.startswith(SCATTER_NAME + "[")]
+            if z:
+                out[SCATTER_NAME] = -float(sum(z))
         return out
 
 
@@ -401,7 +408,34 @@ def parameter_names(spec: ForceModelSpec, logs: "int | Sequence[LogData]" = 1) -
         names += [x for i in range(n_logs) for x in (f"baseline_n{sfx(i)}", f"drift_n_per_s{sfx(i)}")]
     if spec.compliance:
         names.append("compliance_mm_per_n")
+    if spec.specimen_scatter and n_logs > 1:
+        names += [f"{SCATTER_NAME}[{i}]" for i in range(n_logs - 1)]
     return names
+
+
+#: ``specimen-scatter``: log ``i``'s moduli are the law's times ``exp(z_i)``; ``z_i`` is fitted
+#: for every log but the last, whose ``z`` is minus their sum (the law's moduli are the
+#: geometric-mean specimen's).
+SCATTER_NAME = "stiffness_log_factor"
+
+
+def scatter_factors(values: Mapping, n_logs: int) -> np.ndarray:
+    """Each log's stiffness factor ``exp(z_i)`` (ones without ``specimen-scatter``)."""
+    z = [float(values[f"{SCATTER_NAME}[{i}]"]) for i in range(n_logs - 1) if f"{SCATTER_NAME}[{i}]" in values]
+    if len(z) != n_logs - 1 or n_logs < 2:
+        return np.ones(n_logs)
+    return np.exp(np.array(z + [-sum(z)]))
+
+
+def _scaled_tissue(law: Law, tissue: np.ndarray, factor: float) -> np.ndarray:
+    """The law's parameters with its moduli (names ending ``_pa``) times ``factor``."""
+    if factor == 1.0:
+        return tissue
+    out = np.array(tissue, dtype=float)
+    for j, k in enumerate(law.param_names):
+        if k.endswith("_pa"):
+            out[j] *= factor
+    return out
 
 
 def _flat_prony(params: Mapping) -> dict:
@@ -576,6 +610,8 @@ def predict_force(log: LogData, spec: ForceModelSpec, params: Mapping) -> np.nda
     c = float(p.get("compliance_mm_per_n", 0.0)) if spec.compliance else 0.0
     b0 = float(p.get("baseline_n", 0.0)) if spec.baseline_drift else 0.0
     b1 = float(p.get("drift_n_per_s", 0.0)) if spec.baseline_drift else 0.0
+    if spec.specimen_scatter:
+        tissue = _scaled_tissue(law, tissue, float(np.exp(p.get(SCATTER_NAME, 0.0))))
     return _log_force(log, spec, law, tissue, g, tau, offset, c, b0, b1, toe)
 
 
@@ -726,6 +762,9 @@ class _LogProblem(_Problem):
         if spec.compliance:
             hmin = min(lg.height_mm for lg in logs)
             pars.append(_Par("compliance_mm_per_n", 0.0, 0.5 * hmin / fmax, 0.01 * hmin / fmax))
+        if spec.specimen_scatter and n > 1:
+            # specimens a factor of 5 stiffer or softer than the geometric mean at most
+            pars += [_Par(f"{SCATTER_NAME}[{i}]", -np.log(5.0), np.log(5.0), 0.05) for i in range(n - 1)]
         self.pars = pars
         self.names = [p.name for p in pars]
         if self.names != parameter_names(spec, logs):    # the layout and the public names must agree
@@ -743,6 +782,8 @@ class _LogProblem(_Problem):
         b0 = values[f"baseline_n{sfx}"] if spec.baseline_drift else 0.0
         b1 = values[f"drift_n_per_s{sfx}"] if spec.baseline_drift else 0.0
         c = values["compliance_mm_per_n"] if spec.compliance else 0.0
+        if spec.specimen_scatter and len(self.logs) > 1:
+            tissue = _scaled_tissue(self.law, tissue, float(scatter_factors(values, len(self.logs))[i]))
         return tissue, g, tau, off, c, b0, b1, toe
 
     def predict(self, values: Mapping) -> list[np.ndarray]:
@@ -815,6 +856,8 @@ class _LogProblem(_Problem):
                 v[p.name] = 0.0
             elif p.name == "compliance_mm_per_n":
                 v[p.name] = 1e-3 * p.hi
+            elif p.name.startswith(SCATTER_NAME):
+                v[p.name] = 0.0
         return v
 
     def global_starts(self, n_keep: int = 4) -> list[dict]:
