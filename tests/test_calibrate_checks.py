@@ -349,3 +349,24 @@ def test_views_that_do_not_determine_the_focal_length_are_a_failure(tmp_path):
                                  "--spacing-mm", "20", "--no-loop", "-o", str(tmp_path / "o")])
     assert r.exit_code == 1 and "do not determine the focal length" in r.output, r.output
     assert not (tmp_path / "o").exists()
+
+
+def test_exactly_parallel_views_are_a_failure():
+    """Views of the target exactly parallel to each other (turned in plane only; a plate lying
+    on the intensifier's face): every leave-one-out fit lands on the same wrong focal length,
+    so their spread stays small (the probe's asymmetric-circles twin: fx 1674 px for a true
+    3385, spread 2 %, exit 0 with a weak-intrinsics warning).  The fitted target planes
+    turning by under a degree between all the views is a failure saying so; a set that turns
+    20 degrees is not."""
+    from types import SimpleNamespace
+
+    from bsipipe.commands.calibrate import _focal_length_determined
+    from bsipipe.errors import ProcessingError
+    K = [[1674.0, 0, 512], [0, 1674.0, 512], [0, 0, 1]]
+    flat = [np.array([0.0, 0.0, a]) for a in np.linspace(-0.3, 0.3, 10)]
+    cal = SimpleNamespace(camera=SimpleNamespace(camera_matrix=K), std_jackknife={"fx": 32.6, "fy": 32.6},
+                          rms_px=0.07, rvecs=flat)
+    with pytest.raises(ProcessingError, match="turns by at most"):
+        _focal_length_determined("cam1", cal, "views/")
+    cal.rvecs = [np.array([0.35 * np.cos(a), 0.35 * np.sin(a), a]) for a in np.linspace(0, 6, 10)]
+    _focal_length_determined("cam1", cal, "views/")

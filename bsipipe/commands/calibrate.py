@@ -486,6 +486,9 @@ def _principal_point(name: str, free, hf, image_size, centre, cfg: CalibrateConf
 #: it is not determined by the views: a failed calibration (exit 1).  Calibrations of C-arms
 #: and of the real chessboard pair spread 0.01-5 %; ten views tilted 1.5 degrees, 26 %.
 MAX_FOCAL_SPREAD = 0.15
+#: Views whose target planes all lie within this angle of each other leave the focal length
+#: undetermined (Zhang's method needs planes that are not parallel).
+MIN_PLATE_TURN_DEG = 1.0
 
 
 def _focal_length_determined(name: str, cal, path: str) -> None:
@@ -499,6 +502,20 @@ def _focal_length_determined(name: str, cal, path: str) -> None:
     spread = {k: j[k] / K[i, i] for i, k in ((0, "fx"), (1, "fy")) if k in j and K[i, i] > 0}
     # views that fit one camera well but do not pin its focal length down; views that do not
     # fit one camera (a large RMS: views of two cameras) are the large-rms warning's
+    # the plates' normals: all parallel (within MIN_PLATE_TURN_DEG) and f is not determined at
+    # all, whatever the leave-one-out spread says (exactly fronto-parallel views: every subset
+    # lands on the same wrong f, fx 1674 px for a true 3385, spread 2 %, exit 0)
+    import cv2
+    normals = [cv2.Rodrigues(np.asarray(r, float).reshape(3, 1))[0][:, 2] for r in (cal.rvecs or [])]
+    if len(normals) >= 2 and cal.rms_px <= LARGE_RMS_PX:
+        N = np.array(normals)
+        turn = float(np.degrees(np.arccos(np.clip(np.abs(N @ N.T), -1.0, 1.0))).max())
+        if turn < MIN_PLATE_TURN_DEG:
+            raise ProcessingError(f"camera {name}: the views do not determine the focal length: the target's plane "
+                                  f"turns by at most {turn:.2g} degrees between the {len(normals)} views (all "
+                                  f"parallel: the focal length trades with the distances, fx {K[0, 0]:.0f} px is "
+                                  "arbitrary); give views of the target tilted 20-40 degrees in different "
+                                  "directions", path=path)
     if spread and max(spread.values()) > MAX_FOCAL_SPREAD and cal.rms_px <= LARGE_RMS_PX:
         k = max(spread, key=spread.get)
         raise ProcessingError(f"camera {name}: the views do not determine the focal length: {k} "
