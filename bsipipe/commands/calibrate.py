@@ -722,8 +722,8 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
             warnings.append(warning(
                 "stereo-pairs-left-out",
                 f"calibrate: stereo {a}-{b}: {len(st.rejected)} of the {len(st.rejected) + len(st.frames)} shared "
-                "frames left out, their relative pose unlike the other pairs' (images not taken together: file names "
-                "exchanged or shifted between the folders?): "
+                "frames left out (a relative pose unlike the other pairs': images not taken together, file names "
+                "exchanged or shifted between the folders; or a grid cut off in one image): "
                 + "; ".join(f"{n}: {why}" for n, why in st.rejected.items()), logger=log, view=f"{a}-{b}",
                 frames=dict(st.rejected)))
         if st.unpaired:
@@ -736,7 +736,8 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
             warnings.append(warning(
                 "large-rms", f"calibrate: stereo {a}-{b}: reprojection RMS {st.rms_px:.2f} px is over "
                 f"{LARGE_RMS_PX:g} px: the shared frames do not fit the two cameras (frames that were not taken at "
-                "the same instant, or a wrong --grid)", logger=log, view=f"{a}-{b}", rms_px=st.rms_px,
+                "the same instant, or a wrong --grid)" + (f"; {st.note}" if st.note else ""), logger=log,
+                view=f"{a}-{b}", rms_px=st.rms_px,
                 limit_px=LARGE_RMS_PX))
         # world = the target in the first shared frame, seen by camera a
         f0 = st.frames[0]
