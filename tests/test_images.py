@@ -653,3 +653,68 @@ def test_a_thumbnail_that_sorts_first_is_named(tmp_path):
     with pytest.raises(InputError) as e:
         list(iter_frames(d))
     assert "zz_stray.png" in str(e.value) and "expected 64x48 px" in str(e.value)
+
+
+def test_two_runs_of_a_series_in_one_folder_are_refused(tmp_path):
+    """A folder with a 6-file run and 2 files of an earlier one (both numbered from 1, or of
+    two series UIDs): ordered together by time, the gap had been taken for thousands of dropped
+    frames and frames of the other run tracked, exit 0.  It is exit 2 naming the files."""
+    from pydicom.uid import generate_uid
+    imgs = [_ramp(dtype=np.uint16, seed=s) for s in range(8)]
+    d = tmp_path / "mixed"
+    d.mkdir()
+    uid_a, uid_b = generate_uid(), generate_uid()
+    for k in range(6):
+        _series_file(d / f"IM{k:05d}.dcm", imgs[k], InstanceNumber=k + 1, SeriesInstanceUID=uid_a,
+                     ContentDate="20261121", ContentTime=f"1210{k:02d}")
+    for k in range(2):
+        _series_file(d / f"RUN0_{k}.dcm", imgs[6 + k], InstanceNumber=k + 1, SeriesInstanceUID=uid_b,
+                     ContentDate="20261121", ContentTime=f"1200{k:02d}")
+    with pytest.raises(InputError, match="DICOM series") as e:
+        list(iter_frames(d))
+    assert "RUN0_0.dcm" in str(e.value)
+    # the same numbering clash without series UIDs that tell them apart
+    for f in d.glob("RUN0_*.dcm"):
+        _series_file(f, imgs[7], InstanceNumber=int(f.stem[-1]) + 1, SeriesInstanceUID=uid_a,
+                     ContentDate="20261121", ContentTime=f"1200{f.stem[-1]:0>2}")
+    with pytest.raises(InputError, match="repeat another's InstanceNumber"):
+        list(iter_frames(d))
+
+
+def test_frame_time_vector_holding_times_is_read_as_times(tmp_path):
+    """A FrameTimeVector of each frame's time (0, 250, 500, ... ms) where DICOM asks for the
+    increments (0, 250, 250, ...): summed, the clip had run 0, 0.25, 0.75, 1.5 ... s, unsaid.
+    Increments that grow by one period per frame are read as times (with a log warning)."""
+    frames = np.stack([_ramp(seed=s) for s in range(6)])
+    _write_dicom(tmp_path / "cum.dcm", frames, frame_time_vector=[0, 250, 500, 750, 1000, 1250])
+    _write_dicom(tmp_path / "inc.dcm", frames, frame_time_vector=[0, 250, 250, 250, 250, 250])
+    for name in ("cum.dcm", "inc.dcm"):
+        assert [f.time_s for f in iter_frames(tmp_path / name)] == pytest.approx([0, 0.25, 0.5, 0.75, 1.0, 1.25])
+
+
+def test_frames_named_by_decimal_times_in_time_order(tmp_path):
+    """Files named by their time with a decimal point (t_0s, t_0.25s, t_0.5s ...): the natural
+    order had read t_0.5s before t_0.25s (frames out of order, 3-D points 0.68 mm off, exit 0)."""
+    d = tmp_path / "t"
+    d.mkdir()
+    times = [0, 0.25, 0.5, 0.75, 1, 1.25, 1.5, 2, 10.5]
+    for k, t in enumerate(times):
+        cv2.imwrite(str(d / f"t_{t:g}s.png"), _ramp(seed=k))
+    got = [int(f.image[0, 0]) for f in iter_frames(d)]
+    assert got == [int(_ramp(seed=k)[0, 0]) for k in range(len(times))]
+
+
+def test_tiff_stack_with_a_preview_page(tmp_path):
+    """A TIFF stack whose first page is a reduced-resolution preview (NewSubfileType 1): it had
+    been taken for frame 0 and the real frames refused ("image is 512x512 px, expected 128x128
+    px like cam1.tif#0").  Previews are left out of the frames and the count."""
+    frames = [_ramp(64, 64, seed=s) for s in range(4)]
+    p = tmp_path / "stack.tif"
+    with tifffile.TiffWriter(str(p)) as w:
+        w.write(frames[0][::4, ::4], subfiletype=1)
+        for f in frames:
+            w.write(f, contiguous=False)
+    got = list(iter_frames(p))
+    assert len(got) == 4 and count_frames(p) == 4
+    assert all(np.array_equal(g.image, f) for g, f in zip(got, frames))
+    assert np.array_equal(read_image(p), frames[0])

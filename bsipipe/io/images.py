@@ -113,7 +113,30 @@ def _by_name(source: str | os.PathLike) -> list[Path]:
         files = [p]
     else:
         raise InputError("no such file or folder", path=s)
-    return sorted(files, key=lambda q: natural_key(q.name))
+    return sorted(files, key=_name_order(files))
+
+
+#: A file stem that is one decimal number between a fixed prefix and suffix (``t_0.25s``).
+_DECIMAL_NAME = re.compile(r"^(.*?)(\d+\.\d+|\d+)(\D*)$")
+
+
+def _name_order(files: list[Path]):
+    """The sort key of a folder's frames: :func:`natural_key`, or, where every name is one
+    number with a decimal point or none between one prefix and one suffix (frames named by
+    their time: ``t_0s``, ``t_0.25s``, ``t_0.5s``), that number's value (the natural order
+    put ``t_0.5s`` before ``t_0.25s``: frames out of order, exit 0).
+
+    >>> names = [Path(f"t_{t:g}s.png") for t in (0, 0.25, 0.5, 0.75, 1, 1.25)]
+    >>> [q.name for q in sorted(names[::-1], key=_name_order(names))][:4]
+    ['t_0s.png', 't_0.25s.png', 't_0.5s.png', 't_0.75s.png']
+    """
+    parts = [_DECIMAL_NAME.match(q.stem) for q in files]
+    if (len(files) > 1 and all(parts) and any("." in m.group(2) for m in parts)
+            and len({(m.group(1), m.group(3), q.suffix.lower()) for m, q in zip(parts, files)}) == 1):
+        value = {q: float(m.group(2)) for q, m in zip(files, parts)}
+        if len(set(value.values())) == len(files):
+            return lambda q: (value.get(q, float("inf")), natural_key(q.name))
+    return lambda q: natural_key(q.name)
 
 
 #: The last number in a file name, with the text before and after it (``frame_0057.png``).
@@ -299,6 +322,19 @@ def _read_series(files: list[Path]) -> _Series | None:
             return None                     # multi-frame files: each holds its own clip
         heads.append(ds)
     n = len(files)
+    # one series per source: files of two series in one folder (an earlier run, a localizer)
+    # had been ordered together by time, the gap taken for 2,395 dropped frames, exit 0
+    uids: dict[str, list[str]] = {}
+    for f, ds in zip(files, heads):
+        uid = getattr(ds, "SeriesInstanceUID", None)
+        if uid:
+            uids.setdefault(str(uid), []).append(f.name)
+    # (a writer that gives every file its own series UID says nothing: only groups count)
+    if sum(len(v) > 1 for v in uids.values()) > 1:
+        parts = [f"{len(v)} file(s) of series ...{u[-12:]} ({', '.join(v[:3])}{', ...' if len(v) > 3 else ''})"
+                 for u, v in sorted(uids.items(), key=lambda kv: -len(kv[1]))]
+        raise InputError(f"the folder holds {len(uids)} DICOM series (SeriesInstanceUID): " + "; ".join(parts)
+                         + ": give one series per view (a folder or a glob of its files)", path=files[0].parent)
     stamps = {}
     for key, date_kw, time_kw in (("AcquisitionDateTime", None, "AcquisitionDateTime"),
                                   ("ContentDate/ContentTime", "ContentDate", "ContentTime"),
@@ -313,6 +349,17 @@ def _read_series(files: list[Path]) -> _Series | None:
         except (AttributeError, TypeError, ValueError):
             inst = None
             break
+    if inst is not None and 1 < len(set(inst)) < n:
+        # numbers that repeat but are not all one: two runs numbered from 1 in one folder
+        seen: dict[int, str] = {}
+        twice = []
+        for f, i in zip(files, inst):
+            if i in seen:
+                twice.append(f"{seen[i]} and {f.name} both {i}")
+            seen.setdefault(i, f.name)
+        raise InputError(f"{n - len(set(inst))} of the {n} DICOM files repeat another's InstanceNumber "
+                         f"({'; '.join(twice[:3])}{'; ...' if len(twice) > 3 else ''}): two series or runs in one "
+                         "folder?  Give one run per view", path=files[0].parent)
     if inst is not None and len(set(inst)) == n:
         order, how = np.argsort(inst, kind="stable"), "InstanceNumber"
     elif stamps:
@@ -499,6 +546,15 @@ def _read_cv2(path: Path, hashes: dict | None = None) -> np.ndarray:
     return a
 
 
+def _full_pages(tif) -> list[int]:
+    """The indices of a TIFF's pages that are images of their own, not reduced-resolution
+    previews (NewSubfileType bit 0: a thumbnail first page had been taken for frame 0, and the
+    real frames refused as "image is 512x512 px, expected 128x128 like frame 0"); all of them
+    where every page is so marked."""
+    full = [k for k, pg in enumerate(tif.pages) if not (int(getattr(pg, "subfiletype", 0) or 0) & 1)]
+    return full or list(range(len(tif.pages)))
+
+
 def _tiff_pages(path: Path):
     import tifffile
     try:
@@ -643,7 +699,17 @@ def _dicom_frame_times(ds, n: int) -> list[float | None]:
         return [None] * n
     vec = getattr(ds, "FrameTimeVector", None)
     if vec is not None and len(vec) == n:
-        return list(np.cumsum(np.asarray(vec, dtype=float)) / 1000.0)
+        v = np.asarray(vec, dtype=float)
+        if n >= 4 and v[0] == 0 and np.all(np.diff(v[1:]) > 0):
+            d = np.diff(v)
+            if np.ptp(d) <= 0.01 * np.median(d):
+                # increments that grow by one period each frame: the vector holds each frame's
+                # time, not the increments the standard asks for (such writers exist; read as
+                # increments the clip ran 0, 0.25, 0.75, 1.5 ... 108.75 s for 7.25)
+                log.warning("%s: FrameTimeVector holds times (0, %g, %g, ... ms), not the increments DICOM "
+                            "asks for: read as each frame's time", getattr(ds, "filename", "DICOM file"), v[1], v[2])
+                return list(v / 1000.0)
+        return list(np.cumsum(v) / 1000.0)
     ft = getattr(ds, "FrameTime", None)
     if ft is not None and float(ft) > 0:
         return [i * float(ft) / 1000.0 for i in range(n)]
@@ -682,7 +748,7 @@ def read_image(path: str | os.PathLike, *, dtype=None, channel: int | None = Non
             if not tif.pages:
                 errors.check(p)
                 raise InputError("TIFF file has no pages", path=p)
-            a = _tiff_page_array(tif.pages[0], p, None)
+            a = _tiff_page_array(tif.pages[_full_pages(tif)[0]], p, None)
             errors.check(p)
         return _finish(a, dtype, True, channel, p)
     if _is_dicom(p):
@@ -724,15 +790,19 @@ def _iter_file(path: Path, dtype, channel, hashes: dict | None = None
                 raise InputError("TIFF file has no pages", path=path)
             # a stack's own times (OME DeltaT, ImageJ frame interval); a gap of whole periods
             # numbers the pages after it by time, as a DICOM clip's
-            times = _tiff_times(tif, n)
-            ks = time_indices(times) or range(n)
-            for k in range(n):
+            all_times = _tiff_times(tif, n)
+            pages = _full_pages(tif)
+            if len(pages) < n:
+                log.info("%s: %d reduced-resolution page(s) (previews) left out", path, n - len(pages))
+            times = [all_times[k] for k in pages]
+            ks = time_indices(times) or range(len(pages))
+            for j, k in enumerate(pages):
                 # the page's index within the file names it in a stack; a file of one page
                 # is named by the file alone (in a folder its frame is not page 0)
                 a = _tiff_page_array(tif.pages[k], path, k if n > 1 else None)
                 errors.check(path, k if n > 1 else None)
                 name = path.name if n == 1 else f"{path.name}#{k}"
-                yield name, _finish(a, dtype, True, channel, path, k if n > 1 else None), times[k], ks[k]
+                yield name, _finish(a, dtype, True, channel, path, k if n > 1 else None), times[j], ks[j]
     elif _is_dicom(path):
         _hash_into(hashes, path)
         ds = _dicom_dataset(path, pixels=False)
@@ -1012,7 +1082,7 @@ def count_frames(source: str | os.PathLike) -> int:
         elif suf in (".tif", ".tiff"):
             tif = _tiff_pages(f)
             with tif, _TiffErrors() as errors:
-                n += len(tif.pages)
+                n += len(_full_pages(tif))
                 errors.check(f)
         elif _is_dicom(f):
             ds = _dicom_dataset(f, pixels=False)
