@@ -248,7 +248,12 @@ def synth(config, out) -> None:
                    "different magnifications); default: estimated per view from the seeds, else the first frames.")
 @click.option("--seeds", type=click.Path(dir_okay=False),
               help="seeds.csv view,marker,x_px,y_px in frame 0 (or an XMALab 2-D CSV); default: automatic.")
-@click.option("--fps", type=click.FloatRange(min=0, min_open=True), help="Frame rate where frames have no time stamps.")
+@click.option("--fps", multiple=True, metavar="F|NAME=F",
+              help="Frame rate where frames have no time stamps, or NAME=F for one view (repeat for each view: "
+                   "C-arms filming at different rates).")
+@click.option("--fps-over-stamps", "fps_over_stamps", is_flag=True, default=None,
+              help="Use --fps even where the source has time stamps (a video exported at a container rate that "
+                   "is not the acquisition's).")
 @click.option("--loop/--no-loop", default=None, help="Close the loop on the triangulation (default on).")
 @click.option("--method", type=click.Choice(["gaussian", "centroid", "radial"]), help="Sub-pixel centre (default gaussian; centroid with --parity trackpy).")
 @click.option("--parity", type=click.Choice(["none", "trackpy"]),

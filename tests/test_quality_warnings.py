@@ -430,3 +430,91 @@ def test_calibration_mismatch_without_a_stereo_rms_in_the_file(twin, tmp_path):
         assert bool(w) == warned, res["warnings"]
         if warned:
             assert w[0]["calibration_rms_assumed"] and "assumed: the file gives none" in w[0]["message"]
+
+
+def test_a_view_filmed_at_half_the_rate_gets_its_own_fps(twin, tmp_path):
+    """cam1 kept every second frame (a C-arm at half the other's rate) and one --fps for both:
+    frames paired by index, 3-D points 0.33 mm RMS off on the probe's twin, and the only
+    warning said the longer view's last frames had no partner.  The warning now names the
+    whole-number ratio and the per-view --fps; given them (--fps cam1=F/2 --fps cam2=F) the
+    views are paired by time, as sources at different rates are, and every reference stays
+    where the full-rate run puts it."""
+    import cv2
+    src = sorted((twin / "synth/sequence/cam1").glob("*.png"))
+    half = tmp_path / "cam1"
+    half.mkdir()
+    for k, f in enumerate(src[::2]):
+        cv2.imwrite(str(half / f"frame_{k:04d}.png"), cv2.imread(str(f), cv2.IMREAD_UNCHANGED))
+    n2 = len(list((twin / "synth/sequence/cam2").glob("*.png")))
+    if n2 % 2:                       # a whole-number ratio of the counts
+        pytest.skip("odd frame count")
+    fps = float(SYNTH_TINY["sequence"]["fps"])
+    base = ["track", "--view", f"cam1={half}", "--view", f"cam2={twin / 'synth/sequence/cam2'}",
+            "--calibration", twin / "calibrate/calibration.json", "--seeds", twin / "synth/seeds.csv"]
+    _invoke(*base, "--fps", fps, "-o", tmp_path / "one")
+    res = json.loads((tmp_path / "one" / "track.json").read_text())
+    w = [w for w in res["warnings"] if w["code"] == "frame-count-mismatch"]
+    assert len(w) == 1 and f"--fps cam1={fps / 2:g} --fps cam2={fps:g}" in w[0]["message"], res["warnings"]
+    _invoke(*base, "--fps", f"cam1={fps / 2:g}", "--fps", f"cam2={fps:g}", "-o", tmp_path / "two")
+    res = json.loads((tmp_path / "two" / "track.json").read_text())
+    assert res["views"]["cam1"]["time_source"] == f"--fps {fps / 2:g}"
+    assert "frame-count-mismatch" not in _codes(res["warnings"])
+    _invoke("track", "--view", f"cam1={twin / 'synth/sequence/cam1'}", "--view", f"cam2={twin / 'synth/sequence/cam2'}",
+            "--calibration", twin / "calibrate/calibration.json", "--seeds", twin / "synth/seeds.csv",
+            "--fps", fps, "-o", tmp_path / "full")
+    mean = {k: pd.read_csv(tmp_path / k / "markers3d.csv", dtype={"marker": str}).groupby("marker")[
+        ["x_mm", "y_mm", "z_mm"]].mean() for k in ("two", "full", "one")}
+    refs = [m for m in mean["full"].index if m.startswith("R")]
+    assert refs
+    d_two = np.linalg.norm(mean["two"].loc[refs].to_numpy() - mean["full"].loc[refs].to_numpy(), axis=1)
+    print("references, per-view fps vs full rate (mm):", np.round(d_two, 4))
+    assert d_two.max() < 0.02
+    # the moving markers at the same times: paired by time they follow the full-rate run;
+    # paired by index (one --fps) they lag it
+    tabs = {k: pd.read_csv(tmp_path / k / "markers3d.csv", dtype={"marker": str}) for k in ("two", "one", "full")}
+    for t in tabs.values():
+        t["t"] = np.rint(t["time_s"] * 1000).astype(int)
+    dev = {}
+    for k in ("two", "one"):
+        m = tabs[k].merge(tabs["full"], on=["marker", "t"], suffixes=("", "_f"))
+        m = m[~m["marker"].str.startswith("R")].dropna(subset=["x_mm", "x_mm_f"])
+        dev[k] = float(np.sqrt(np.mean(np.sum((m[["x_mm", "y_mm", "z_mm"]].to_numpy()
+                                               - m[["x_mm_f", "y_mm_f", "z_mm_f"]].to_numpy()) ** 2, axis=1))))
+    print("moving markers vs the full-rate run at the same times (mm RMS):", dev)
+    assert dev["two"] < 0.03 and dev["one"] > 2 * dev["two"]
+    # a view that is not given, or both forms mixed: exit 2 naming the option
+    r = CliRunner().invoke(cli, [str(a) for a in base] + ["--fps", f"cam1={fps}", "-o", str(tmp_path / "x")])
+    assert r.exit_code == 2 and "fps" in r.output, r.output
+    r = CliRunner().invoke(cli, [str(a) for a in base] + ["--fps", "2", "--fps", "cam1=1", "-o", str(tmp_path / "y")])
+    assert r.exit_code == 2 and "--fps" in r.output, r.output
+
+
+def test_fps_over_stamps_wins_over_a_videos_container_rate(twin, tmp_path):
+    """A video exported at a container rate of 25 frames/s for an acquisition at the twin's
+    rate: its times ran 6.25 times too fast and --fps could not say otherwise (an fps-ignored
+    warning).  --fps-over-stamps makes the rate given win, and the warning points to it."""
+    import cv2
+    fps = float(SYNTH_TINY["sequence"]["fps"])
+    views = []
+    for v in ("cam1", "cam2"):
+        frames = sorted((twin / "synth/sequence" / v).glob("*.png"))
+        first = cv2.imread(str(frames[0]), cv2.IMREAD_GRAYSCALE)
+        out = tmp_path / f"{v}.avi"
+        w = cv2.VideoWriter(str(out), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, first.shape[::-1], isColor=False)
+        for f in frames:
+            w.write(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE))
+        w.release()
+        views += ["--view", f"{v}={out}"]
+    base = ["track", *views, "--seeds", twin / "synth/seeds.csv", "--fps", fps, "--no-loop"]
+    _invoke(*base, "-o", tmp_path / "stamps")
+    res = json.loads((tmp_path / "stamps" / "track.json").read_text())
+    w = [w for w in res["warnings"] if w["code"] == "fps-ignored"]
+    assert len(w) == 1 and "--fps-over-stamps" in w[0]["message"]
+    t = pd.read_csv(tmp_path / "stamps" / "markers2d.csv")
+    assert t["time_s"].max() == pytest.approx((t["frame"].max()) / 25.0, rel=1e-3)
+    _invoke(*base, "--fps-over-stamps", "-o", tmp_path / "given")
+    res = json.loads((tmp_path / "given" / "track.json").read_text())
+    assert "fps-ignored" not in _codes(res["warnings"])
+    assert "over the source's own stamps" in res["views"]["cam1"]["time_source"]
+    t = pd.read_csv(tmp_path / "given" / "markers2d.csv")
+    np.testing.assert_allclose(t["time_s"], t["frame"] / fps)

@@ -28,7 +28,7 @@ import math
 import os
 import sys
 from pathlib import Path
-from typing import Literal, Sequence, Union
+from typing import Annotated, Literal, Sequence, Union
 
 import numpy as np
 import pandas as pd
@@ -137,10 +137,13 @@ class TrackConfig(StrictModel):
     diameter_px: PositiveFloat | dict[str, PositiveFloat] | None = Field(
         None, description="marker diameter in px, or one per view ({cam1: 4, cam2: 7}: C-arms at different "
                           "magnifications); default estimated per view from the seeds (else from the first frames)")
-    fps: float | None = Field(None, ge=1e-6, le=1e6,
-                              description="frame rate where the source has no time stamps (frames/s, 1e-6 to 1e6: "
-                                          "a frame in 11 days to a megahertz camera; beyond, times in seconds "
-                                          "under- or overflow in the clock fits)")
+    fps: Annotated[float, Field(ge=1e-6, le=1e6)] | dict[str, Annotated[float, Field(ge=1e-6, le=1e6)]] | None = Field(
+        None, description="frame rate where the source has no time stamps (frames/s, 1e-6 to 1e6: a frame in 11 days "
+                          "to a megahertz camera; beyond, times in seconds under- or overflow in the clock fits), or "
+                          "one per view ({cam1: 2, cam2: 4}: C-arms filming at different rates)")
+    fps_over_stamps: bool = Field(False, description="use fps even where the source has time stamps (a video "
+                                                     "exported at a container rate of 25 frames/s for a 4 frames/s "
+                                                     "acquisition)")
     channel: int | None = Field(None, ge=0, le=2, description="colour frames: use this channel (default luma)")
     loop: bool = True
     lowpass_hz: PositiveFloat | None = Field(None, description="zero-phase low-pass of the 3-D trajectories")
@@ -160,6 +163,17 @@ class TrackConfig(StrictModel):
         if isinstance(v, dict) and info.data.get("views") is not None:
             _every_view("a diameter", "diameters", v, info.data["views"])
         return v
+
+    @field_validator("fps")
+    @classmethod
+    def _fps_per_view(cls, v, info):
+        if isinstance(v, dict) and info.data.get("views") is not None:
+            _every_view("a frame rate", "frame rates", v, info.data["views"])
+        return v
+
+    def fps_of(self, view: str) -> float | None:
+        """The frame rate given for ``view`` (one for every view, or its own)."""
+        return self.fps.get(view) if isinstance(self.fps, dict) else self.fps
 
     @model_validator(mode="after")
     def _rois_per_view(self):
@@ -244,6 +258,28 @@ def _parse_diameters(values: Sequence[str]) -> float | dict[str, float] | None:
     return named or one
 
 
+def _parse_fps(values: Sequence[str]) -> float | dict[str, float] | None:
+    """``--fps``: one ``F`` for every view, or ``NAME=F`` per view (:func:`_per_view_option`)."""
+    if not values:
+        return None
+    if isinstance(values, (int, float)):
+        return float(values)
+
+    def number(text: str, given: str) -> float:
+        try:
+            x = float(text)
+        except ValueError:
+            x = math.nan
+        if not (math.isfinite(x) and x > 0):
+            raise InputError(f"--fps {given!r}: expected a positive number of frames/s (F, or NAME=F for one view)",
+                             key="fps")
+        return x
+
+    one, named = _per_view_option("--fps", "fps", "F", values, number,
+                                  lambda s: s.split("=", 1)[0].strip() if "=" in s else None)
+    return named or one
+
+
 def _parse_roi(text: str):
     """One ``--roi`` value: ``auto``, ``none``, a circle ``X,Y,R`` (px) or a mask image's path."""
     t = text.strip()
@@ -290,6 +326,8 @@ def build_config(config_path=None, *, view=(), calibration=None, polarity=None, 
         data["views"] = _parse_views(view)
     if isinstance(diameter_px, (tuple, list)):           # the command line's --diameter-px values
         diameter_px = _parse_diameters(diameter_px)
+    if isinstance(fps, (tuple, list)):                   # the command line's --fps values
+        fps = _parse_fps(fps)
     roi = extra.pop("roi", None)
     if isinstance(roi, (tuple, list)):                   # the command line's --roi values
         roi = _parse_rois(roi, data.get("views") or {}) if roi else None
@@ -770,13 +808,14 @@ def _frames_without_markers(table: pd.DataFrame, seeded: bool = False) -> dict[s
     return out
 
 
-def _missing_frame_rows(table: pd.DataFrame, missing: dict[str, list[int]], fps: float | None,
+def _missing_frame_rows(table: pd.DataFrame, missing: dict[str, list[int]], cfg,
                         views: list[str]) -> pd.DataFrame:
     """``table`` with a row for every marker of a view in each of its ``missing`` frames (not
-    found, status ``missing-frame``, timed at frame / ``fps`` where a rate is given), in
-    view and frame order."""
+    found, status ``missing-frame``, timed at frame / the view's ``fps`` where a rate is
+    given), in view and frame order."""
     add = []
     for v, fr in missing.items():
+        fps = cfg.fps_of(v)
         ms = pd.unique(table.loc[table["view"] == v, "marker"])
         f = np.repeat(np.asarray(fr, np.int64), len(ms))
         add.append(pd.DataFrame({"view": v, "frame": f, "marker": np.tile(ms, len(fr)),
@@ -836,8 +875,11 @@ def _track_views(cfg, views, seed_df, d: dict, det, tk, progress: bool, rois: di
 
         try:
             frames = iter_frames(path, channel=cfg.channel, hashes=frame_hashes, workers=decode_workers())
+            if cfg.fps_over_stamps and cfg.fps_of(v) is not None:
+                # the rate given wins over the source's own stamps (a container's default rate)
+                frames = (fr._replace(time_s=None) for fr in frames)
             res = track_view(prefetched(frames), s, d[v], cfg.polarity, view=v,
-                             fps=cfg.fps, roi=rois[v], detection=det, settings=tk, on_frame=on_frame)
+                             fps=cfg.fps_of(v), roi=rois[v], detection=det, settings=tk, on_frame=on_frame)
         except ValueError as e:
             raise InputError(str(e), path=path) from None
         finally:
@@ -1110,7 +1152,7 @@ def _sequence_warnings(table: pd.DataFrame, events: list[dict], cfg, views, info
             + _frames_listed(missing) + "): their rows are empty (status missing-frame, no 3-D point), and the later frames keep their "
               "numbers and pair with the other view's frames of the same number",
             log, frames={v: m for v, m in missing.items()}))
-        table = _missing_frame_rows(table, missing, cfg.fps, views)
+        table = _missing_frame_rows(table, missing, cfg, views)
     empty = _frames_without_markers(table, seeded)
     if empty:
         # which of them have no picture at all (black, flashed, dark noise: tested while tracking)
@@ -1153,11 +1195,23 @@ def _sequence_warnings(table: pd.DataFrame, events: list[dict], cfg, views, info
         # e.g. a video cut short within its header's tolerance, or a frame file missing: the
         # views' frames are paired by index (and time stamps), so the shorter view's end is
         # where stereo stops
+        # a whole-number ratio of the counts: one C-arm filming at a fraction of the other's rate
+        # (cam1 at half the rate, one --fps for both: 3-D points 0.33 mm RMS off, only this
+        # warning; with --fps cam1=1 --fps cam2=2, 0.017 mm)
+        lo_v, hi_v = min(counts, key=counts.get), max(counts, key=counts.get)
+        ratio = counts[hi_v] / max(counts[lo_v], 1)
+        hint = ""
+        if ratio >= 1.9 and abs(ratio - round(ratio)) <= 0.05 * ratio:
+            f = cfg.fps_of(hi_v) or cfg.fps_of(lo_v)
+            rate = (f"--fps {lo_v}={f / round(ratio):g} --fps {hi_v}={f:g}" if f
+                    else f"--fps {lo_v}=F/{round(ratio)} --fps {hi_v}=F")
+            hint = (f"; {hi_v} holds {ratio:.2f} times {lo_v}'s frames: if {lo_v} filmed at 1/{round(ratio)} of the "
+                    f"rate over the same time, give each view its rate ({rate})")
         out.append(warning("frame-count-mismatch",
                            "track: the views hold different numbers of frames ("
                            + ", ".join(f"{v} {n}" for v, n in counts.items())
                            + "); frames are paired by index and time, the longer views' last frames "
-                             "have no partner", log, n_frames=counts))
+                             "have no partner" + hint, log, n_frames=counts))
     if other_rates:
         # time stamps from the sources (video, DICOM) at different rates: frame k of one view
         # is not taken at frame k's time in the other.  Stereo pairs frames by index; the
@@ -1175,17 +1229,20 @@ def _sequence_warnings(table: pd.DataFrame, events: list[dict], cfg, views, info
     timed, n_frames = by_view["time_s"].count() > 0, by_view["frame"].nunique()
     untimed = [v for v in views if not timed.get(v, False)]
     stamped = {v: r for v, r in rates.items()
-               if cfg.fps is not None and abs(r - cfg.fps) > 1e-3 * cfg.fps}
+               if not cfg.fps_over_stamps and cfg.fps_of(v) is not None and abs(r - cfg.fps_of(v)) > 1e-3 * cfg.fps_of(v)}
     for v in views:
-        info.get(v, {})["time_source"] = ("none: no time stamps and no --fps" if v in untimed else
-                                          "the source's time stamps" if cfg.fps is None or v in stamped else
-                                          f"--fps {cfg.fps:g}")
+        info.get(v, {})["time_source"] = (
+            "none: no time stamps and no --fps" if v in untimed else
+            f"--fps {cfg.fps_of(v):g} (over the source's own stamps: --fps-over-stamps)" if cfg.fps_over_stamps
+            and cfg.fps_of(v) is not None else
+            "the source's time stamps" if cfg.fps_of(v) is None or v in stamped else f"--fps {cfg.fps_of(v):g}")
     if stamped:
         out.append(warning(
             "fps-ignored",
-            f"track: --fps {cfg.fps:g} is not used for " + ", ".join(f"{v} ({r:.4g} frames/s)" for v, r in
-                                                               stamped.items())
-            + ": the source's own time stamps are (give --fps only for frames without them)", log,
+            "track: --fps is not used for " + ", ".join(f"{v} ({r:.4g} frames/s in the source, {cfg.fps_of(v):g} "
+                                                         "given)" for v, r in stamped.items())
+            + ": the source's own time stamps are (give --fps only for frames without them, or --fps-over-stamps "
+              "where the source's rate is an export's default, not the acquisition's)", log,
             fps=cfg.fps, frames_per_s=stamped))
     untimed = [v for v in untimed if n_frames.get(v, 0) > 1]      # one frame has no time to lose
     if untimed:
@@ -1584,7 +1641,8 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
             points3d, fit = _smoothed_points(table, st, smoothing, cfg.max_offset_s, pair)
     if points3d is not None:
         if cfg.lowpass_hz is not None:
-            rate = cfg.fps or (1.0 / np.nanmedian(np.diff(st["data"].ta)) if st["time_unit"] == "s" else None)
+            rate = cfg.fps_of(pair[0]) if pair else None
+            rate = rate or (1.0 / np.nanmedian(np.diff(st["data"].ta)) if st["time_unit"] == "s" else None)
             if rate is None:
                 raise InputError("--lowpass-hz needs a frame rate (--fps or time stamps)", path=config_path,
                                  key="lowpass_hz")
