@@ -694,3 +694,32 @@ def test_stereo_pairs_with_a_grid_cut_off_are_left_out():
     with pytest.raises(ValueError, match="shared frames show the grid cut off in a camera"):
         stereo_calibrate(cam_a, cam_b, ("a", "b"), {n: fa[n] for n in ("s0", "s1", "s2", "s3")},
                          {n: fb[n] for n in ("s0", "s1", "s2", "s3")}, target_all=tgt, ambiguous=True)
+
+
+def test_a_speck_on_a_lattice_site_beyond_the_grid_is_left_out():
+    """One extra blob on the lattice one row beyond an 8x17 asymmetric grid (dust, a bead):
+    "137 blobs on the lattice, more than the 8x17 grid holds", and the view was lost with
+    nothing said (3 of 12 views on the probe's twin).  A lone point on an outer lattice line
+    is left out where the rest is the whole grid; two specks on inner sites are not."""
+    from bsipipe.imaging.gridfind import _without_stray_edges, fit_to_target, target_points
+    P = target_points("asymmetric-circles", (8, 17), 20.0)[:, :2] + 300
+    ij0, ok0 = lattice_indices(P)
+    assert ok0.all()
+    A = np.column_stack([ij0, np.ones(len(ij0))])
+    coef = np.linalg.lstsq(A, P, rcond=None)[0]                  # lattice -> image
+    k = int(np.argmax(ij0[:, 0]))
+    site = np.array([ij0[k, 0] + 1, ij0[k, 1], 1.0]) @ coef      # the lattice site beyond the grid's edge
+    xy = np.vstack([P, site])
+    ij, ok = lattice_indices(xy)
+    assert ok.all()
+    from bsipipe.imaging.gridfind import DetectionFailed
+
+    def whole(mask):
+        try:
+            return fit_to_target(ij[mask], "asymmetric-circles", (8, 17), xy[mask])[1]
+        except DetectionFailed:
+            return False
+
+    keep = _without_stray_edges(ij, 1, whole)
+    assert keep is not None and not keep[-1] and keep[:-1].all()
+    assert _without_stray_edges(ij[:-1], 0, whole) is None
