@@ -1500,3 +1500,55 @@ def test_diameter_of_two_sizes_when_the_small_ones_outnumber_the_large():
     balanced = [0.75, 0.81, 0.84, 0.85, 1.01, 1.15, 1.65, 1.69, 1.7, 1.77, 1.82, 2.08]
     assert diameter_from_sigmas(balanced) == pytest.approx(2.5 * np.median(balanced))
     assert diameter_from_sigmas([1.0, 1.1, 1.2, 1.05]) == pytest.approx(2.5 * np.median([1.0, 1.1, 1.2, 1.05]))
+
+
+def test_tracks_on_one_epipolar_line_are_said_to_pair_ambiguously():
+    """Without seeds the views' tracks are paired by their ray gaps; two static markers on one
+    epipolar plane pair almost as well crosswise (two references so placed had been paired
+    crosswise on the probe's twin, 4 mm off, unsaid).  Such pairs are returned as ambiguous;
+    markers off each other's epipolar planes are not."""
+    import cv2
+
+    from bsipipe.imaging.track_effects import match_tracks_across_views
+    from bsipipe.imaging.triangulate import views_from_calibration
+    K = [[2000.0, 0, 512], [0, 2000.0, 512], [0, 0, 1]]
+    view = {"image_size": [1024, 1024], "camera_matrix": K, "dist_model": "opencv-5", "dist_coeffs": [0] * 5,
+            "dist_coeff_names": ["k1", "k2", "p1", "p2", "k3"]}
+    R = cv2.Rodrigues(np.array([0.0, -0.6, 0.0]))[0]
+    T = np.array([300.0, 0.0, 100.0])
+    vg = views_from_calibration({"views": {"a": view, "b": view}, "stereo": {"views": ["a", "b"], "R": R.tolist(),
+                                                                              "T_mm": T.tolist()}})
+    rng = np.random.default_rng(0)
+
+    def table(points):
+        rows = []
+        for f in range(8):
+            for name, P in points.items():
+                for v, (Rv, tv) in (("a", (np.eye(3), np.zeros(3))), ("b", (R, T))):
+                    p = cv2.projectPoints(np.asarray(P, float)[None], cv2.Rodrigues(Rv)[0], tv, np.asarray(K), None)[0]
+                    x, y = p.ravel() + rng.normal(0, 0.05, 2)
+                    rows.append({"view": v, "frame": f, "marker": name, "x_px": x, "y_px": y, "found": True})
+        return pd.DataFrame(rows)
+
+    crossed: list = []
+    names = match_tracks_across_views(table({"P": [0.0, 0.0, 600.0], "Q": [15.0, 0.0, 640.0]}),
+                                      (vg["a"], vg["b"]), ambiguous=crossed)
+    assert len(crossed) == 1 and set(names.values()) == {"P", "Q"}, (crossed, names)
+    apart: list = []
+    match_tracks_across_views(table({"P": [0.0, 0.0, 600.0], "Q": [40.0, 30.0, 700.0]}), (vg["a"], vg["b"]),
+                              ambiguous=apart)
+    assert apart == []
+
+
+def test_a_track_paired_with_another_marker_is_suspected():
+    """A whole track whose median ray gap is 5 times the sequence's (and over 0.1 mm) passes the
+    large-ray-gap flags, which judge each point against its own marker's median; without seeds
+    it is named (cross-view-pairing-suspect)."""
+    from bsipipe.commands.track import _pairing_suspects
+    rng = np.random.default_rng(1)
+    # the probe's edge twin: 10 well-paired markers at ~0.02 mm, M12 at 0.13 mm all along
+    rows = [{"marker": m, "frame": f, "n_views": 2, "ray_gap_mm": g * (1 + 0.2 * rng.standard_normal())}
+            for m, g in [(f"M{i}", 0.02) for i in range(1, 11)] + [("M12", 0.13)] for f in range(20)]
+    w = _pairing_suspects(pd.DataFrame(rows))
+    assert len(w) == 1 and set(w[0]["markers"]) == {"M12"}
+    assert _pairing_suspects(pd.DataFrame([r for r in rows if r["marker"] != "M12"])) == []

@@ -589,6 +589,39 @@ def _progress(total: int | None, desc: str, enabled: bool):
     return tqdm(total=total, desc=desc, unit="frame", file=sys.stderr, disable=not enabled, leave=False)
 
 
+#: Without seeds, a marker whose median ray gap is this many times the sequence's (and over
+#: PAIRING_SUSPECT_FLOOR_MM) was likely paired across the views with another marker's track.
+PAIRING_SUSPECT_FACTOR = 5.0
+PAIRING_SUSPECT_FLOOR_MM = 0.1
+
+
+def _pairing_suspects(points3d: pd.DataFrame) -> list[dict]:
+    """``cross-view-pairing-suspect`` (automatic tracks only): markers whose median ray gap is
+    :data:`PAIRING_SUSPECT_FACTOR` times the sequence's median, and over
+    :data:`PAIRING_SUSPECT_FLOOR_MM`.  The large-ray-gap flags judge each point against its own
+    marker's median, so a whole track paired with the wrong one in the other view passes them
+    (a track split at a bone edge had its second half paired with another marker: 20 points
+    2 mm off, gaps 0.11-0.24 mm against a 0.02 mm median, unflagged)."""
+    from ..quality import warning
+    col = "ray_gap_mm_raw" if "ray_gap_mm_raw" in points3d else "ray_gap_mm"
+    two = points3d[points3d["n_views"] == 2]
+    g = two[col].to_numpy(float)
+    if not np.isfinite(g).any():
+        return []
+    overall = float(np.nanmedian(g))
+    per = two.groupby("marker", sort=False)[col].median()
+    bad = per[(per > PAIRING_SUSPECT_FACTOR * overall) & (per > PAIRING_SUSPECT_FLOOR_MM)]
+    if bad.empty:
+        return []
+    return [warning("cross-view-pairing-suspect",
+                    "track: without seeds, these markers' rays pass far apart all along (median ray gap "
+                    + ", ".join(f"{m} {v:.3g} mm" for m, v in bad.items())
+                    + f", against {overall:.3g} mm over the sequence): their tracks in the two views are likely "
+                      "different markers paired together (their 3-D points are off by millimetres); give seeds, "
+                      "or check the 2-D tracks", log, markers={str(m): float(v) for m, v in bad.items()},
+                    median_mm=overall)]
+
+
 def _ray_gap_warnings(points3d: pd.DataFrame, max_mm: float | None) -> list[dict]:
     """Flag two-view points with a large ray gap (:func:`bsipipe.quality.ray_gap_flags`): sets the
     ``flag`` column of ``points3d`` (``large-ray-gap`` or empty) and returns track.json's warning.
@@ -1296,7 +1329,19 @@ def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, 
     cross_view = None
     if seed_df is None:
         # automatic tracks are named per view: pair them across the views by their ray gaps
-        names = match_tracks_across_views(table, vpair)
+        crossed: list = []
+        names = match_tracks_across_views(table, vpair, ambiguous=crossed)
+        if crossed:
+            warnings.append(warning(
+                "cross-view-ambiguous",
+                "track: without seeds, these tracks pair across the views almost as well crosswise (markers on "
+                "nearly one epipolar line in both views: the geometry cannot tell them apart, and a crossed pair "
+                "is millimetres off): " + "; ".join(
+                    f"{a1}+{pair[1]}:{b1} and {a2}+{pair[1]}:{b2} (median |ray gap| sums {c0:.3g} mm paired so, "
+                    f"{c1:.3g} crosswise)" for a1, b1, a2, b2, c0, c1 in crossed)
+                + "; give seeds that name them in both views", log,
+                pairs=[{"a": [a1, a2], "b": [b1, b2], "cost_mm": c0, "crossed_cost_mm": c1}
+                       for a1, b1, a2, b2, c0, c1 in crossed]))
         sel = table["view"] == pair[1]
         table.loc[sel, "marker"] = table.loc[sel, "marker"].map(names)
         for e in events:
@@ -1652,6 +1697,8 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
             except ValueError as e:
                 raise InputError(str(e), path=config_path, key="lowpass_hz") from None
         warnings += _ray_gap_warnings(points3d, cfg.max_ray_gap_mm)
+        if seed_df is None:
+            warnings += _pairing_suspects(points3d)
 
     rs = ResultSet(out, primary="track.json", outputs=TRACK_OUTPUTS)
     cols2d = ["view", "frame", "marker", "x_px", "y_px", "time_s", "found", "status", "snr", "amplitude",

@@ -1944,7 +1944,7 @@ def _summary(f: StereoFit) -> dict:
 
 def match_tracks_across_views(table: pd.DataFrame, views: tuple[ViewGeometry, ViewGeometry],
                               max_gap_mm: float = 1.0, min_gap_mm: float = 0.3, min_common: int = 3,
-                              max_shift_frames: int = 3) -> dict[str, str]:
+                              max_shift_frames: int = 3, ambiguous: list | None = None) -> dict[str, str]:
     """Names for view B's automatic tracks that make them the same markers as view A's.
 
     Without seeds each view names its tracks on its own; the epipolar geometry pairs them.
@@ -1961,6 +1961,11 @@ def match_tracks_across_views(table: pd.DataFrame, views: tuple[ViewGeometry, Vi
     the clutter), within ``[min_gap_mm, max_gap_mm]``: the noise of true pairs sets it, a
     calibration with large gaps widens it.  Returns ``{B name: A
     name}``; an unpaired B track keeps its name, prefixed with B's view.
+
+    ``ambiguous`` (a list), where given, receives each two pairs whose crossed pairing costs
+    within :data:`PAIRING_AMBIGUITY` good pairs' costs of theirs (markers on nearly one epipolar line in both
+    views, static ones above all: two references so placed had been paired crosswise, 4 mm
+    off, unsaid): ``(A name, B name, A name, B name, cost, crossed cost)``.
     """
     from scipy.optimize import linear_sum_assignment
     va, vb = views
@@ -2000,16 +2005,33 @@ def match_tracks_across_views(table: pd.DataFrame, views: tuple[ViewGeometry, Vi
     best = best[np.isfinite(best)]
     if not len(best):
         return out
-    tau = float(np.clip(5.0 * np.percentile(best, 25), min_gap_mm, max_gap_mm))
+    q25 = float(np.percentile(best, 25))
+    tau = float(np.clip(5.0 * q25, min_gap_mm, max_gap_mm))
     log.debug("cross-view pairing: best costs %s, tau %.3f", np.round(np.sort(best), 3).tolist(), tau)
     big = 1e9
     miss = np.full((len(nb), len(nb)), big)
     np.fill_diagonal(miss, tau)
     r, c = linear_sum_assignment(np.hstack([np.where(cost < tau, cost, big), miss]))
+    pairs = []
     for i, j in zip(r, c):
         if j < len(na) and cost[i, j] < tau:
             out[nb[i]] = na[j]
+            pairs.append((i, j))
+    if ambiguous is not None:
+        for x in range(len(pairs)):
+            for y in range(x + 1, len(pairs)):
+                (i, j), (k, m) = pairs[x], pairs[y]
+                now, crossed = cost[i, j] + cost[k, m], cost[i, m] + cost[k, j]
+                if (cost[i, m] < tau and cost[k, j] < tau
+                        and crossed <= now + PAIRING_AMBIGUITY * max(q25, 1e-6)):
+                    ambiguous.append((na[j], nb[i], na[m], nb[k], float(now), float(crossed)))
     return out
+
+
+#: Two pairs of tracks are ambiguous across the views when pairing them crosswise costs (sum of
+#: median |ray gaps|) at most this many times a good pair's cost (the lower quartile of the
+#: tracks' best costs) more than their own pairing, each crossed pair under the pairing limit.
+PAIRING_AMBIGUITY = 2.0
 
 
 #: The eight orientations of a picture (the square's symmetries), as (name, map) with the map
