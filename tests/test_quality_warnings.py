@@ -518,3 +518,20 @@ def test_fps_over_stamps_wins_over_a_videos_container_rate(twin, tmp_path):
     assert "over the source's own stamps" in res["views"]["cam1"]["time_source"]
     t = pd.read_csv(tmp_path / "given" / "markers2d.csv")
     np.testing.assert_allclose(t["time_s"], t["frame"] / fps)
+
+
+def test_two_view_automatic_tracks_without_a_calibration_keep_apart(twin, tmp_path):
+    """Without seeds and without a calibration nothing pairs the views' tracks, yet each view
+    numbered its own M1, M2, ... and the XMALab 2-D file put cam1's M3 beside an unrelated cam2
+    M3 as one marker (the probe: a reference beside clutter).  The second view's names carry
+    the view, and track.json says why."""
+    _invoke("track", "--view", f"cam1={twin / 'synth/sequence/cam1'}", "--view",
+            f"cam2={twin / 'synth/sequence/cam2'}", "--fps", "0.5", "-o", tmp_path / "o")
+    t = pd.read_csv(tmp_path / "o" / "markers2d.csv", dtype={"marker": str})
+    assert t.loc[t["view"] == "cam2", "marker"].str.startswith("cam2:").all()
+    assert not t.loc[t["view"] == "cam1", "marker"].str.contains(":").any()
+    header = (tmp_path / "o" / "xmalab_2d.csv").read_text().splitlines()[0].split(",")
+    cam1_markers = {h.rsplit("_", 2)[0] for h in header}
+    assert all(m.startswith("cam2:") or not m.startswith("cam") for m in cam1_markers)
+    res = json.loads((tmp_path / "o" / "track.json").read_text())
+    assert "not paired" in res["cross_view_names"]["rule"]

@@ -1673,6 +1673,23 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
 
     st = None
     points3d = fit = None
+    unpaired_names = None
+    if rig is None and seed_df is None and len(views) > 1:
+        # automatic tracks without a calibration: each view names its own, and nothing pairs
+        # them; the names of the views after the first carry their view, so the XMALab 2-D
+        # file (marker-major columns) does not put unrelated tracks under one marker
+        renamed = {}
+        for v in views[1:]:
+            sel = table["view"] == v
+            names = {m: f"{v}:{m}" for m in pd.unique(table.loc[sel, "marker"])}
+            table.loc[sel, "marker"] = table.loc[sel, "marker"].map(names)
+            for e in events:
+                if e["view"] == v and e.get("marker") in names:
+                    e["marker"] = names[e["marker"]]
+            renamed[v] = names
+        unpaired_names = {"renamed": renamed,
+                          "rule": "no calibration and no seeds: the views' tracks are not paired; the names of the "
+                                  "views after the first carry their view"}
     if rig is not None:
         st = _stereo(table, events, warnings, cfg, rig, pair, seed_df, per_view_d, det, rois, info)
         table, points3d, fit = st["table"], st["points3d"], st["fit"]
@@ -1722,6 +1739,8 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     }
     if st is not None and st["cross_view"] is not None:
         result["cross_view_names"] = st["cross_view"]
+    elif unpaired_names is not None:
+        result["cross_view_names"] = unpaired_names
     if smoothing is not None:
         result["smoothing"] = smoothing
     if points3d is not None:
