@@ -141,6 +141,21 @@ def test_nearest_neighbour_without_prediction_is_worse():
     assert bad(cv) < bad(static)
 
 
+def _hidden_marker_frames(M, hidden, size, rng, *, extra=None, background=None):
+    """Frames of one 4 px bead at ``M[i]`` (none in the ``hidden`` frames), on ``extra`` (an
+    image added, its median taken out) or over ``background`` (a transmission), with noise of
+    sd 1.7."""
+    field = RayField(bead_camera(size))
+    frames = []
+    for i in range(len(M)):
+        img = render_beads(M[i:i + 1], 4.0, size, None, field=field, skip={0} if i in hidden else set(),
+                           noise=False, quantize=False, background=background)
+        if extra is not None:
+            img = img + extra - np.median(extra)
+        frames.append(np.clip(np.rint(img + rng.normal(0, 1.7, img.shape)), 0, 255).astype(np.uint8))
+    return frames
+
+
 def test_occluded_marker_found_again():
     """A marker hidden for 8 frames (behind an instrument) while it keeps moving: lost when
     it disappears, found again within a frame of reappearing (the gate grows along its
@@ -150,15 +165,10 @@ def test_occluded_marker_found_again():
     t = np.arange(n, dtype=float)
     M = np.column_stack([40 + 1.5 * t, 60 + 0.8 * t])
     hidden = set(range(14, 22))
-    field = RayField(bead_camera(size))
-    frames = []
     # an 8 px bead sits 6 px from the hidden marker's path, inside its growing search window
-    big = render_beads(np.array([[63.0, 79.5]]), 8.0, size, None, field=field, noise=False, quantize=False)
-    for i in range(n):
-        skip = {0} if i in hidden else set()
-        f4 = render_beads(M[i:i + 1], 4.0, size, None, field=field, skip=skip, noise=False, quantize=False)
-        img = f4 + big - np.median(big) + rng.normal(0, 1.7, f4.shape)
-        frames.append(np.clip(np.rint(img), 0, 255).astype(np.uint8))
+    big = render_beads(np.array([[63.0, 79.5]]), 8.0, size, None, field=RayField(bead_camera(size)), noise=False,
+                       quantize=False)
+    frames = _hidden_marker_frames(M, hidden, size, rng, extra=big)
     res = track_view(frames, {"M": M[0]}, 4.0, "dark", roi="none")
     s = res.table.sort_values("frame")
     found = s["found"].to_numpy()
@@ -183,14 +193,9 @@ def test_hidden_marker_is_not_taken_onto_a_wire():
     t = np.arange(n, dtype=float)
     M = np.column_stack([50 + 0.6 * t, 70 + 0.3 * t])
     hidden = set(range(14, 30))
-    field = RayField(bead_camera(size))
     yy = np.arange(size, dtype=np.float32)[:, None] * np.ones((1, size), np.float32)
     wire = 1.0 - 0.3 * np.exp(-0.5 * ((yy - 76) / 0.7) ** 2)
-    frames = []
-    for i in range(n):
-        img = render_beads(M[i:i + 1], 4.0, size, None, field=field, skip={0} if i in hidden else set(),
-                           noise=False, quantize=False, background=wire)
-        frames.append(np.clip(np.rint(img + rng.normal(0, 1.7, img.shape)), 0, 255).astype(np.uint8))
+    frames = _hidden_marker_frames(M, hidden, size, rng, background=wire)
     res = track_view(frames, {"M": M[0]}, 4.0, "dark", roi="none")
     s = res.table.sort_values("frame").set_index("frame")
     e = np.hypot(s["x_px"] - M[s.index, 0], s["y_px"] - M[s.index, 1])

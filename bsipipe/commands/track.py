@@ -157,18 +157,13 @@ class TrackConfig(StrictModel):
     tracking: TrackingConfig = TrackingConfig()
     figures: bool = True
 
-    @field_validator("diameter_px")
+    @field_validator("diameter_px", "fps")
     @classmethod
-    def _diameters_per_view(cls, v, info):
+    def _one_per_view(cls, v, info):
         if isinstance(v, dict) and info.data.get("views") is not None:
-            _every_view("a diameter", "diameters", v, info.data["views"])
-        return v
-
-    @field_validator("fps")
-    @classmethod
-    def _fps_per_view(cls, v, info):
-        if isinstance(v, dict) and info.data.get("views") is not None:
-            _every_view("a frame rate", "frame rates", v, info.data["views"])
+            one, many = {"diameter_px": ("a diameter", "diameters"), "fps": ("a frame rate", "frame rates")}[
+                info.field_name]
+            _every_view(one, many, v, info.data["views"])
         return v
 
     def fps_of(self, view: str) -> float | None:
@@ -236,8 +231,8 @@ def _per_view_option(option: str, key: str, form: str, values: Sequence[str], pa
     return (parse(plain[-1].strip(), plain[-1]) if plain else None), named
 
 
-def _parse_diameters(values: Sequence[str]) -> float | dict[str, float] | None:
-    """``--diameter-px``: one ``D`` for every view, or ``NAME=D`` per view
+def _parse_positive_per_view(values: Sequence[str], option: str, key: str, form: str, unit: str):
+    """``option``: one positive ``form`` for every view, or ``NAME=form`` per view
     (:func:`_per_view_option`); None when not given.  A value that is not a positive number is
     an error naming the option."""
     if not values:
@@ -249,35 +244,25 @@ def _parse_diameters(values: Sequence[str]) -> float | dict[str, float] | None:
         except ValueError:
             x = math.nan
         if not (math.isfinite(x) and x > 0):
-            raise InputError(f"--diameter-px {given!r}: expected a positive number of px (D, or NAME=D for one "
-                             "view)", key="diameter_px")
+            raise InputError(f"{option} {given!r}: expected a positive number of {unit} ({form}, or NAME={form} for "
+                             "one view)", key=key)
         return x
 
-    one, named = _per_view_option("--diameter-px", "diameter_px", "D", values, number,
+    one, named = _per_view_option(option, key, form, values, number,
                                   lambda s: s.split("=", 1)[0].strip() if "=" in s else None)
     return named or one
+
+
+def _parse_diameters(values: Sequence[str]) -> float | dict[str, float] | None:
+    """``--diameter-px``: one ``D`` for every view, or ``NAME=D`` per view."""
+    return _parse_positive_per_view(values, "--diameter-px", "diameter_px", "D", "px")
 
 
 def _parse_fps(values: Sequence[str]) -> float | dict[str, float] | None:
-    """``--fps``: one ``F`` for every view, or ``NAME=F`` per view (:func:`_per_view_option`)."""
-    if not values:
-        return None
+    """``--fps``: one ``F`` for every view, or ``NAME=F`` per view."""
     if isinstance(values, (int, float)):
         return float(values)
-
-    def number(text: str, given: str) -> float:
-        try:
-            x = float(text)
-        except ValueError:
-            x = math.nan
-        if not (math.isfinite(x) and x > 0):
-            raise InputError(f"--fps {given!r}: expected a positive number of frames/s (F, or NAME=F for one view)",
-                             key="fps")
-        return x
-
-    one, named = _per_view_option("--fps", "fps", "F", values, number,
-                                  lambda s: s.split("=", 1)[0].strip() if "=" in s else None)
-    return named or one
+    return _parse_positive_per_view(values, "--fps", "fps", "F", "frames/s")
 
 
 def _parse_roi(text: str):
