@@ -390,6 +390,11 @@ CASES: list[Case] = [
     _c("table-nan", "fit-ogden", "NaN stretch",
        lambda b, d: (["fit-ogden", "--stress-stretch", p := _put(d / "t.csv", [
            "stretch,nominal_stress_kpa", "1.0,0", "nan,0.12", "1.2,0.25"])], p, "line 3")),
+    # strains in the stretch column: had been fitted (mu 53 Pa, alpha 0.27), exit 0
+    _c("table-strain-as-stretch", "fit-ogden", "strains 0.02-6.6 in the stretch column",
+       lambda b, d: (["fit-ogden", "--stress-stretch", p := _put(d / "t.csv", [
+           "stretch,nominal_stress_pa", "0.02,25500", "0.125,134400", "0.24,225600", "0.39,316900", "1.5,700000",
+           "3.0,1500000"])], p, "looks like strains")),
     # --- images (bsipipe/io/images.py) through calibrate
     _c("png-corrupt", "calibrate", "truncated PNG among the views",
        lambda b, d: (_calib_args(f := _calib_folder(b, d)), (_truncate(f / "cal_002.png"), f / "cal_002.png")[1],

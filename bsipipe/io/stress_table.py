@@ -137,11 +137,24 @@ def read_stress_table(path: str | os.PathLike, mode: str | None = None) -> pd.Da
         if m != "simple-shear" and lam <= 0:
             raise InputError(f"stretch {rows[k][j_stretch]!r} is not positive ({m} needs a "
                              f"stretch > 0)", path=path, line=int(line_no[k]))
+    # strains in the stretch column (0.02, 0.05, ...): every stretch near 0 is a specimen
+    # compressed to a sliver; they had been fitted (mu 53 Pa, alpha 0.27, errors of 100 %)
+    lam_ns = np.asarray([lam for lam, m in zip(stretch, modes) if m != "simple-shear"], float)
+    if len(lam_ns) and lam_ns.min() < MIN_STRETCH:
+        raise InputError(f"the stretch column looks like strains: it runs from {lam_ns.min():.3g} to "
+                         f"{lam_ns.max():.3g}, and a stretch of {lam_ns.min():.3g} is a specimen compressed to "
+                         f"{100 * lam_ns.min():.2g} % of its length (a stretch is length / original length, 1 "
+                         "unloaded): give stretch = 1 + strain (1 - the compressive strain in compression)", path=path)
     stress, turned, magnitudes = _stress_sign(stretch, stress, np.asarray(modes))
     out = pd.DataFrame({"stretch": stretch, "nominal_stress_pa": stress, "mode": modes})
     out.attrs.update(path=path, lines=line_no.tolist(), stress_unit=stress_unit, sign_turned=turned,
                      magnitudes=magnitudes)
     return out
+
+
+#: A stretch (tension and compression rows) below this is a strain: no specimen is compressed
+#: to a tenth of its length.
+MIN_STRETCH = 0.1
 
 
 def _stress_sign(stretch: np.ndarray, stress: np.ndarray,
