@@ -108,7 +108,8 @@ def test_ray_gap_rule():
 def test_fit_warns_when_parameters_are_not_identifiable(tmp_path):
     """A relaxation term fitted to one fast ramp (2.5 s of loading) has neither its fraction nor its
     time determined: g1's interval spans zero and g1, tau1 move together."""
-    r = _invoke("fit-ogden", FAST_LOG, "--prony", "1", "--no-loop", "--bootstrap", "0", "-o", tmp_path / "qlv")
+    r = _invoke("fit-ogden", FAST_LOG, "--prony", "1", "--no-loop", "--bootstrap", "0", "--boundary", "frictionless",
+                "-o", tmp_path / "qlv")
     fit = json.loads((tmp_path / "qlv" / "fit.json").read_text())
     codes = _codes(fit["warnings"])
     assert "interval-spans-zero" in codes and "parameter-correlation" in codes
@@ -128,7 +129,8 @@ def test_fit_warns_when_parameters_are_not_identifiable(tmp_path):
 def test_fit_without_warnings_when_parameters_are_determined(tmp_path):
     """One-term Ogden on the same log: mu and alpha correlate at about 0.97, both intervals are
     far from zero."""
-    r = _invoke("fit-ogden", FAST_LOG, "--no-loop", "--bootstrap", "0", "-o", tmp_path / "elastic")
+    r = _invoke("fit-ogden", FAST_LOG, "--no-loop", "--bootstrap", "0", "--boundary", "frictionless", "-o",
+                tmp_path / "elastic")
     fit = json.loads((tmp_path / "elastic" / "fit.json").read_text())
     assert fit["warnings"] == []
     assert "WARNING" not in r.stderr
@@ -535,3 +537,28 @@ def test_two_view_automatic_tracks_without_a_calibration_keep_apart(twin, tmp_pa
     assert all(m.startswith("cam2:") or not m.startswith("cam") for m in cam1_markers)
     res = json.loads((tmp_path / "o" / "track.json").read_text())
     assert "not paired" in res["cross_view_names"]["rule"]
+
+
+def test_an_undeclared_boundary_one_shape_cannot_show_is_warned(tmp_path):
+    """Without --boundary and with one height/diameter the force cannot tell bonded platens
+    from free ones; a no-slip 18 x 6 mm specimen had been fitted at 2.2 times its modulus with
+    only an INFO line (hidden by -q, not in fit.json).  boundary-undeclared says so; declared
+    (test_fit_without_warnings_when_parameters_are_determined) it is not said."""
+    _invoke("fit-ogden", FAST_LOG, "--no-loop", "--bootstrap", "0", "-o", tmp_path / "o")
+    fit = json.loads((tmp_path / "o" / "fit.json").read_text())
+    w = [w for w in fit["warnings"] if w["code"] == "boundary-undeclared"]
+    assert len(w) == 1 and "--boundary no-slip" in w[0]["message"]
+
+
+def test_a_drift_no_load_cell_has_is_warned():
+    """load-baseline-drift that moves a log's zero by a tenth of its peak force over the record
+    (three specimens fitted together, one 10 % shorter than declared: -1.1 mN/s, 70 mN) is
+    warned: it stands in for another effect.  A drift of a fraction of a per cent is not."""
+    from types import SimpleNamespace
+
+    from bsipipe.commands.fit_ogden import _drift_implausible
+    t = np.linspace(0.0, 65.0, 651)
+    lg = SimpleNamespace(name="c", time_s=t, force_n=0.7 * (t / 65.0) ** 3)
+    w = _drift_implausible({"drift_n_per_s": -1.1e-3}, [lg])
+    assert len(w) == 1 and w[0]["code"] == "implausible-drift" and w[0]["moved_n"] == pytest.approx(0.0715)
+    assert _drift_implausible({"drift_n_per_s": -2e-5}, [lg]) == []

@@ -510,6 +510,55 @@ BASELINE_WARN_FRACTION = 0.01
 COMPLIANCE_MAX_SHARE = 0.2
 
 
+#: A fitted load-cell drift over a log may move the zero by at most this share of its peak force.
+DRIFT_MAX_SHARE = 0.05
+
+
+def _drift_implausible(values: dict, data) -> list[dict]:
+    """An ``implausible-drift`` warning where the fitted ``load-baseline-drift`` moves a log's
+    load-cell zero over its record by more than :data:`DRIFT_MAX_SHARE` of its peak force: a
+    cell's zero drifts by a fraction of a per cent of its range, so the residual the effect
+    took is another one's (three specimens fitted together, one 10 % shorter than declared:
+    -1.1 mN/s, 70 mN over the log, a tenth of its peak force, and alpha -4.92 [-4.97, -4.87]
+    for -4.7, with nothing said)."""
+    from ..quality import warning
+    out = []
+    for i, lg in enumerate(data):
+        sfx = f"[{i}]" if len(data) > 1 else ""
+        b1 = float(values.get(f"drift_n_per_s{sfx}", 0.0))
+        span = float(lg.time_s[-1] - lg.time_s[0])
+        peak = float(np.max(np.abs(lg.force_n))) if len(lg.force_n) else 0.0
+        moved = abs(b1) * span
+        if peak > 0 and moved > DRIFT_MAX_SHARE * peak:
+            out.append(warning(
+                "implausible-drift",
+                f"fit-ogden: {lg.name}: the fitted load-cell drift {1e3 * b1:.3g} mN/s moves the zero by "
+                f"{1e3 * moved:.3g} mN over the {span:.4g} s record, {100 * moved / peak:.0f} % of its peak force: "
+                "no load cell drifts so; the residual it took is likely another effect's (a specimen's size given "
+                "wrong, specimens that differ, a contact placed wrong): check the sizes, or fit the logs one by one",
+                log, log_name=lg.name, drift_n_per_s=b1, moved_n=moved, peak_n=peak))
+    return out
+
+
+def _boundary_undeclared(data) -> list[dict]:
+    """A ``boundary-undeclared`` warning for logs fitted frictionless without ``--boundary``
+    where nothing could decide it (no width series, one height/diameter): bonded (sandpaper)
+    platens make the homogeneous formula overestimate mu by about 20-35 % at H/D 1 and
+    60-130 % at 0.5, and the force of one shape cannot show it (a no-slip 18 x 6 mm specimen
+    had been fitted at 2.2 times its modulus, exit 0, the hint only an INFO log line)."""
+    from ..mechanics.effects import NO_SLIP_MIN_ASPECT_SPREAD
+    from ..quality import warning
+    aspects = sorted({round(lg.aspect, 3) for lg in data})
+    if aspects[-1] / aspects[0] >= NO_SLIP_MIN_ASPECT_SPREAD:
+        return []                          # the loop tried no-slip-platens on the shapes and kept frictionless
+    return [warning(
+        "boundary-undeclared",
+        "fit-ogden: the platens' boundary was not declared and the logs cannot show it (one height/diameter, "
+        f"{', '.join(f'{a:g}' for a in aspects)}, no --width-csv): fitted as frictionless (free to spread); if "
+        "the specimen was bonded or on sandpaper (no-slip), give --boundary no-slip: the frictionless formula "
+        "overestimates mu by about 20-35 % at height/diameter 1 and 60-130 % at 0.5", log, aspect=aspects)]
+
+
 def _compliance_implausible(c_mm_per_n: float, data) -> list[dict]:
     """An ``implausible-compliance`` warning where the fitted ``machine-compliance`` makes the
     frame deflect, at a log's peak force, by more than :data:`COMPLIANCE_MAX_SHARE` of its
@@ -959,6 +1008,10 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
         result["warnings"] += _baseline_ignored(input_info, data)
     if kind == "logs" and spec.compliance:
         result["warnings"] += _compliance_implausible(final.values.get("compliance_mm_per_n", 0.0), data)
+    if kind == "logs" and spec.baseline_drift:
+        result["warnings"] += _drift_implausible(final.values, data)
+    if kind == "logs" and "boundary" not in explicit and width is None and final.spec.boundary == "frictionless":
+        result["warnings"] += _boundary_undeclared(data)
     try:
         _no_modulus(final.params, result["warnings"], paths[0])
     except ProcessingError:
