@@ -1246,8 +1246,9 @@ def _sequence_warnings(table: pd.DataFrame, events: list[dict], cfg, views, info
     by_view = table.groupby("view", sort=False)
     timed, n_frames = by_view["time_s"].count() > 0, by_view["frame"].nunique()
     untimed = [v for v in views if not timed.get(v, False)]
-    stamped = {v: r for v, r in rates.items()
-               if not cfg.fps_over_stamps and cfg.fps_of(v) is not None and abs(r - cfg.fps_of(v)) > 1e-3 * cfg.fps_of(v)}
+    given = {v: cfg.fps_of(v) for v in views}
+    stamped = {v: r for v, r in rates.items() if not cfg.fps_over_stamps and given.get(v) is not None
+               and abs(r - given[v]) > 1e-3 * given[v]}
     for v in views:
         info.get(v, {})["time_source"] = (
             "none: no time stamps and no --fps" if v in untimed else

@@ -95,8 +95,8 @@ class SelectionRule:
             f"drops by more than {100 * self.heldout_gain_min:g} %; "
             f"or when outside evidence has delta BIC > {self.evidence_delta_bic_min:g} and the fit's delta BIC "
             f"> {self.residual_delta_bic_floor:g}; the strongest passing effect is kept, one per step (within "
-            f"delta BIC {self.tie_delta_bic:g} of the strongest, the one adding the fewest parameters, then the one the "
-            f"stage lists first); only "
+            f"delta BIC {self.tie_delta_bic:g} of the strongest, the one adding the fewest parameters, then the "
+            f"one the stage lists first); only "
             f"outside-evidence effects are tried once the residual is noise (family-wise alpha {self.alpha:g}) "
             f"or its RMSE is within {100 * self.rmse_gain_min:g} % of the measured noise level")
         return d
