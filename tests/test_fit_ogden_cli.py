@@ -338,6 +338,10 @@ def test_record_starting_loaded_needs_and_takes_the_contact(tmp_path):
     assert inp["contact_mm"] == -0.3 and inp["contact"]["method"].startswith("given")
     assert inp["contact"]["before_first_sample"] and inp["contact"]["extension_mm"] == pytest.approx(0.3)
     assert inp["fitted_part"].startswith("first loading ramp") and inp["loading_ramps"] == 2
+    # said as a warning too (it had been in fitted_part only: a preconditioned record fitted on
+    # its first, unconditioned ramp with nothing said)
+    w = [w for w in d["warnings"] if w["code"] == "first-ramp-only"]
+    assert len(w) == 1 and w[0]["loading_ramps"] == 2
     assert inp["n_points"] < inp["n_record"] / 3
     assert inp["force_baseline"]["level_n"] == 0.0 and "assumed 0 N" in inp["force_baseline"]["source"]
     assert "load-baseline-drift" not in [s["effect"] for s in d["loop"]["steps"]]

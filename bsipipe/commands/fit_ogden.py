@@ -638,6 +638,21 @@ def _geometry_disagrees(input_info: list[dict]) -> list[dict]:
     return out
 
 
+def _several_ramps(input_info: list[dict]) -> list[dict]:
+    """A ``first-ramp-only`` warning for each log with more than one loading ramp: the first is
+    fitted (the tissue before any preconditioning), which the usual protocol does not (it fits
+    the response after preconditioning cycles); the fitted part had been said only in
+    ``inputs[].fitted_part`` (the probe: two preconditioning cycles to 10 % strain, the first
+    of them fitted, mu 729, alpha -4.22 for -4.70, with no warning)."""
+    from ..quality import warning
+    return [warning(
+        "first-ramp-only",
+        f"fit-ogden: {Path(info['path']).name}: the record has {info['loading_ramps']} loading ramps and only the "
+        "first is fitted (the tissue before any preconditioning); to fit the response after preconditioning "
+        "cycles, cut the record to the ramp wanted", log, log_name=info["path"], loading_ramps=info["loading_ramps"])
+        for info in input_info if int(info.get("loading_ramps", 1) or 1) > 1]
+
+
 def _load_clipped(input_info: list[dict]) -> list[dict]:
     """A ``load-clipped`` warning for each log whose force stops at a ceiling
     (:func:`clipped_top`): the fit ends before it."""
@@ -996,8 +1011,8 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
     }
     result["warnings"] = _fit_quality(final)
     if kind == "logs":
-        result["warnings"] += (_spikes_left_out(input_info) + _load_clipped(input_info) + _contacts_moved(input_info)
-                               + _geometry_disagrees(input_info))
+        result["warnings"] += (_spikes_left_out(input_info) + _load_clipped(input_info) + _several_ramps(input_info)
+                               + _contacts_moved(input_info) + _geometry_disagrees(input_info))
         if boundary_said is not None:
             result["boundary_check"] = boundary_said["evidence"]
             if boundary_said.get("warning"):
