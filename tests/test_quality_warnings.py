@@ -559,6 +559,9 @@ def test_a_drift_no_load_cell_has_is_warned():
     from bsipipe.commands.fit_ogden import _drift_implausible
     t = np.linspace(0.0, 65.0, 651)
     lg = SimpleNamespace(name="c", time_s=t, force_n=0.7 * (t / 65.0) ** 3)
-    w = _drift_implausible({"drift_n_per_s": -1.1e-3}, [lg])
+    def fit(drift):                     # a fit's per-log parameters (FitResult.log_params)
+        return SimpleNamespace(log_params=lambda i: {"drift_n_per_s": drift})
+
+    w = _drift_implausible(fit(-1.1e-3), [lg])
     assert len(w) == 1 and w[0]["code"] == "implausible-drift" and w[0]["moved_n"] == pytest.approx(0.0715)
-    assert _drift_implausible({"drift_n_per_s": -2e-5}, [lg]) == []
+    assert _drift_implausible(fit(-2e-5), [lg]) == []

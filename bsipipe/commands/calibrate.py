@@ -500,8 +500,6 @@ def _focal_length_determined(name: str, cal, path: str) -> None:
     K = np.asarray(cal.camera.camera_matrix, float)
     j = {_STD_NAME.get(k, k): v for k, v in (cal.std_jackknife or {}).items()}
     spread = {k: j[k] / K[i, i] for i, k in ((0, "fx"), (1, "fy")) if k in j and K[i, i] > 0}
-    # views that fit one camera well but do not pin its focal length down; views that do not
-    # fit one camera (a large RMS: views of two cameras) are the large-rms warning's
     # the plates' normals: all parallel (within MIN_PLATE_TURN_DEG) and f is not determined at
     # all, whatever the leave-one-out spread says (exactly fronto-parallel views: every subset
     # lands on the same wrong f, fx 1674 px for a true 3385, spread 2 %, exit 0)
@@ -516,6 +514,8 @@ def _focal_length_determined(name: str, cal, path: str) -> None:
                                   f"parallel: the focal length trades with the distances, fx {K[0, 0]:.0f} px is "
                                   "arbitrary); give views of the target tilted 20-40 degrees in different "
                                   "directions", path=path)
+    # views that fit one camera well but do not pin its focal length down; views that do not
+    # fit one camera (a large RMS: views of two cameras) are the large-rms warning's
     if spread and max(spread.values()) > MAX_FOCAL_SPREAD and cal.rms_px <= LARGE_RMS_PX:
         k = max(spread, key=spread.get)
         raise ProcessingError(f"camera {name}: the views do not determine the focal length: {k} "

@@ -114,23 +114,22 @@ def _scale_warning(model_mm: np.ndarray, measured_mm: np.ndarray, peak_values=No
     one's mean displacement at the markers) is within that range: then the result compared is
     the wrong one (FE result times halved had picked the unloaded state, and the warning had
     blamed the length unit)."""
-    m = np.linalg.norm(model_mm, axis=1)
-    d = np.linalg.norm(measured_mm, axis=1)
-    if not (np.median(m) > 0 and np.median(d) > 0):
+    m = float(np.median(np.linalg.norm(model_mm, axis=1)))
+    d = float(np.median(np.linalg.norm(measured_mm, axis=1)))
+    if not (m > 0 and d > 0):
         return None
-    r = float(np.median(m) / np.median(d))
+    r = m / d
     if 0.01 < r < 100:
         return None
+    said = (f"the model's displacements at the markers are {r:.3g} times the measured ones (medians {m:.3g} and "
+            f"{d:.3g} mm)")
     pv = np.asarray(peak_values if peak_values is not None else [], dtype=float)
     pv = pv[np.isfinite(pv) & (pv > 0)]
-    if len(pv) and np.any((pv / np.median(d) > 0.01) & (pv / np.median(d) < 100)):
-        return (f"the model's displacements at the markers are {r:.3g} times the measured ones (medians "
-                f"{np.median(m):.3g} and {np.median(d):.3g} mm), while other FE results in the file reach "
-                f"{pv.max():.3g} mm: the result compared is not the measured frame's (its time, or the frame, is "
-                "off; see --fe-result)")
-    return (f"the model's displacements at the markers are {r:.3g} times the measured ones (medians "
-            f"{np.median(m):.3g} and {np.median(d):.3g} mm): the FE result is likely in another length unit than "
-            "the mesh (metres read as mm?); sigma is not meaningful until they agree")
+    if len(pv) and np.any((pv / d > 0.01) & (pv / d < 100)):
+        return (f"{said}, while other FE results in the file reach {pv.max():.3g} mm: the result compared is not "
+                "the measured frame's (its time, or the frame, is off; see --fe-result)")
+    return (f"{said}: the FE result is likely in another length unit than the mesh (metres read as mm?); sigma is "
+            "not meaningful until they agree")
 
 
 def _axis_sign_warning(model_mm: np.ndarray, measured_mm: np.ndarray) -> str | None:

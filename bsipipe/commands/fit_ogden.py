@@ -514,7 +514,7 @@ COMPLIANCE_MAX_SHARE = 0.2
 DRIFT_MAX_SHARE = 0.05
 
 
-def _drift_implausible(values: dict, data) -> list[dict]:
+def _drift_implausible(final, data) -> list[dict]:
     """An ``implausible-drift`` warning where the fitted ``load-baseline-drift`` moves a log's
     load-cell zero over its record by more than :data:`DRIFT_MAX_SHARE` of its peak force: a
     cell's zero drifts by a fraction of a per cent of its range, so the residual the effect
@@ -524,8 +524,7 @@ def _drift_implausible(values: dict, data) -> list[dict]:
     from ..quality import warning
     out = []
     for i, lg in enumerate(data):
-        sfx = f"[{i}]" if len(data) > 1 else ""
-        b1 = float(values.get(f"drift_n_per_s{sfx}", 0.0))
+        b1 = float(final.log_params(i).get("drift_n_per_s", 0.0))
         span = float(lg.time_s[-1] - lg.time_s[0])
         peak = float(np.max(np.abs(lg.force_n))) if len(lg.force_n) else 0.0
         moved = abs(b1) * span
@@ -1024,7 +1023,7 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
     if kind == "logs" and spec.compliance:
         result["warnings"] += _compliance_implausible(final.values.get("compliance_mm_per_n", 0.0), data)
     if kind == "logs" and spec.baseline_drift:
-        result["warnings"] += _drift_implausible(final.values, data)
+        result["warnings"] += _drift_implausible(final, data)
     if kind == "logs" and "boundary" not in explicit and width is None and final.spec.boundary == "frictionless":
         result["warnings"] += _boundary_undeclared(data)
     try:

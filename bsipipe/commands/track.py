@@ -123,6 +123,10 @@ class TrackingConfig(StrictModel):
                          "and width as the test, a fainter find is safe")
 
 
+#: A frame rate bsipipe can use (frames/s): a frame in 11 days to a megahertz camera.
+FrameRate = Annotated[float, Field(ge=1e-6, le=1e6)]
+
+
 class TrackConfig(StrictModel):
     """``bsipipe track CONFIG.yaml``; paths are relative to the config file's folder."""
 
@@ -137,7 +141,7 @@ class TrackConfig(StrictModel):
     diameter_px: PositiveFloat | dict[str, PositiveFloat] | None = Field(
         None, description="marker diameter in px, or one per view ({cam1: 4, cam2: 7}: C-arms at different "
                           "magnifications); default estimated per view from the seeds (else from the first frames)")
-    fps: Annotated[float, Field(ge=1e-6, le=1e6)] | dict[str, Annotated[float, Field(ge=1e-6, le=1e6)]] | None = Field(
+    fps: FrameRate | dict[str, FrameRate] | None = Field(
         None, description="frame rate where the source has no time stamps (frames/s, 1e-6 to 1e6: a frame in 11 days "
                           "to a megahertz camera; beyond, times in seconds under- or overflow in the clock fits), or "
                           "one per view ({cam1: 2, cam2: 4}: C-arms filming at different rates)")
@@ -260,8 +264,6 @@ def _parse_diameters(values: Sequence[str]) -> float | dict[str, float] | None:
 
 def _parse_fps(values: Sequence[str]) -> float | dict[str, float] | None:
     """``--fps``: one ``F`` for every view, or ``NAME=F`` per view."""
-    if isinstance(values, (int, float)):
-        return float(values)
     return _parse_positive_per_view(values, "--fps", "fps", "F", "frames/s")
 
 
@@ -914,6 +916,16 @@ def _track_views(cfg, views, seed_df, d: dict, det, tk, progress: bool, rois: di
     return tables, events, info, first_images, frame_hashes
 
 
+def _rename_markers(table: pd.DataFrame, events: list[dict], view: str, names: dict) -> None:
+    """Rename ``view``'s markers in ``table`` and its ``events`` (in place) by ``names``, which
+    holds every marker of the view."""
+    sel = table["view"] == view
+    table.loc[sel, "marker"] = table.loc[sel, "marker"].map(names)
+    for e in events:
+        if e["view"] == view and e.get("marker") in names:
+            e["marker"] = names[e["marker"]]
+
+
 def _check_frame_sizes(rig, pair, shapes: dict, path) -> None:
     """Each calibrated view's frames must have the size of the image its camera was
     calibrated on: the camera matrix holds for that image, and frames binned, cropped or
@@ -1252,14 +1264,14 @@ def _sequence_warnings(table: pd.DataFrame, events: list[dict], cfg, views, info
     for v in views:
         info.get(v, {})["time_source"] = (
             "none: no time stamps and no --fps" if v in untimed else
-            f"--fps {cfg.fps_of(v):g} (over the source's own stamps: --fps-over-stamps)" if cfg.fps_over_stamps
-            and cfg.fps_of(v) is not None else
-            "the source's time stamps" if cfg.fps_of(v) is None or v in stamped else f"--fps {cfg.fps_of(v):g}")
+            f"--fps {given[v]:g} (over the source's own stamps: --fps-over-stamps)" if cfg.fps_over_stamps
+            and given[v] is not None else
+            "the source's time stamps" if given[v] is None or v in stamped else f"--fps {given[v]:g}")
     if stamped:
         out.append(warning(
             "fps-ignored",
-            "track: --fps is not used for " + ", ".join(f"{v} ({r:.4g} frames/s in the source, {cfg.fps_of(v):g} "
-                                                         "given)" for v, r in stamped.items())
+            "track: --fps is not used for " + ", ".join(f"{v} ({r:.4g} frames/s in the source, {given[v]:g} given)"
+                                                         for v, r in stamped.items())
             + ": the source's own time stamps are (give --fps only for frames without them, or --fps-over-stamps "
               "where the source's rate is an export's default, not the acquisition's)", log,
             fps=cfg.fps, frames_per_s=stamped))
@@ -1328,11 +1340,7 @@ def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, 
                 + "; give seeds that name them in both views", log,
                 pairs=[{"a": [a1, a2], "b": [b1, b2], "cost_mm": c0, "crossed_cost_mm": c1}
                        for a1, b1, a2, b2, c0, c1 in crossed]))
-        sel = table["view"] == pair[1]
-        table.loc[sel, "marker"] = table.loc[sel, "marker"].map(names)
-        for e in events:
-            if e["view"] == pair[1] and e.get("marker") in names:
-                e["marker"] = names[e["marker"]]
+        _rename_markers(table, events, pair[1], names)
         cross_view = {"view": pair[1], "renamed": names,
                       "rule": "median |ray gap| (least over whole-frame shifts of up to 3 frames), pairing of least "
                                "total cost, a track left unpaired above 5x the lower quartile of the best costs "
@@ -1666,13 +1674,8 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         # file (marker-major columns) does not put unrelated tracks under one marker
         renamed = {}
         for v in views[1:]:
-            sel = table["view"] == v
-            names = {m: f"{v}:{m}" for m in pd.unique(table.loc[sel, "marker"])}
-            table.loc[sel, "marker"] = table.loc[sel, "marker"].map(names)
-            for e in events:
-                if e["view"] == v and e.get("marker") in names:
-                    e["marker"] = names[e["marker"]]
-            renamed[v] = names
+            renamed[v] = {m: f"{v}:{m}" for m in pd.unique(table.loc[table["view"] == v, "marker"])}
+            _rename_markers(table, events, v, renamed[v])
         unpaired_names = {"renamed": renamed,
                           "rule": "no calibration and no seeds: the views' tracks are not paired; the names of the "
                                   "views after the first carry their view"}

@@ -155,32 +155,24 @@ def ramp_holds(log: LogRecord, window: ContactWindow) -> list[dict]:
     if not len(pos):
         return []
     slow = v < HOLD_SPEED_FRACTION * float(np.median(pos))
-    out = []
-    k = 0
-    while k < len(slow):
-        if not slow[k]:
-            k += 1
-            continue
-        j = k
-        while j < len(slow) and slow[j]:
-            j += 1
-        dur = float(t[j] - t[k])
-        if dur >= HOLD_MIN_S:
-            out.append({"start_s": float(t[k]), "duration_s": dur, "travel_mm": float(e[k] - window.travel_mm)})
-        k = j
-    return out
+    # runs of slow steps: step a..b-1 spans samples a..b (as fit-ogden's _loading_speed finds
+    # its holds, there by step count)
+    edges = np.flatnonzero(np.diff(np.r_[0, slow.astype(np.int8), 0]))
+    return [{"start_s": float(t[a]), "duration_s": float(t[b] - t[a]), "travel_mm": float(e[a] - window.travel_mm)}
+            for a, b in zip(edges[::2], edges[1::2]) if t[b] - t[a] >= HOLD_MIN_S]
 
 
-def ramp_speed_mm_per_min(log: LogRecord, window: ContactWindow) -> float:
+def ramp_speed_mm_per_min(log: LogRecord, window: ContactWindow, holds: list[dict] | None = None) -> float:
     """Crosshead speed while loading after contact: the least-squares slope of travel on time,
     over the moving samples only where the ramp holds (:func:`ramp_holds`): each moving stretch
     its own intercept, one common slope (a 3 s pause had been averaged in: 9.995 mm/min for a
-    12 mm/min ramp, a failed speed check that never named the pause)."""
+    12 mm/min ramp, a failed speed check that never named the pause).  ``holds``: the ramp's
+    holds where the caller has them already."""
     sl = slice(window.index, window.peak_index + 1)
     t, e = log.time_s[sl], log.travel_mm[sl]
     if len(t) < 2:
         raise ValueError("fewer than two samples between contact and the deepest point")
-    holds = ramp_holds(log, window)
+    holds = ramp_holds(log, window) if holds is None else holds
     if not holds:
         return float(np.polyfit(t, e, 1)[0] * 60.0)
     seg = np.zeros(len(t), int)
@@ -769,8 +761,8 @@ def build_handoff(cfg, *, fit: dict, transform, markers_ct: pd.DataFrame, log: L
     target = force_target(log, window)
     markers = marker_table(markers_ct, names, window.time_s + offset)
 
-    speed = ramp_speed_mm_per_min(log, window)
     holds = ramp_holds(log, window)
+    speed = ramp_speed_mm_per_min(log, window, holds)
     if holds:
         warnings.append(
             "the log's crosshead stood still during loading: "

@@ -415,8 +415,8 @@ def is_blank(frame: np.ndarray) -> bool:
     """A frame without a picture: its whole range of grey levels (max - min) is within 16
     sd of its own pixel noise (1.4826 MAD of Immerkaer's high-pass / 6, on every 4th row
     and column), plus one grey level of an integer frame: a black or saturated frame (range
-    0) or dark noise only (about 10 sd over a megapixel).  A frame with any marker, edge or field border spans far
-    more; a noiseless one (a rendering: MAD 0) is blank only if flat.
+    0) or dark noise only (about 10 sd over a megapixel).  A frame with any marker, edge or
+    field border spans far more; a noiseless one (a rendering: MAD 0) is blank only if flat.
 
     >>> is_blank(np.zeros((64, 64), np.uint8)), is_blank(np.eye(64, dtype=np.uint8) * 200)
     (True, False)

@@ -1963,9 +1963,10 @@ def match_tracks_across_views(table: pd.DataFrame, views: tuple[ViewGeometry, Vi
     name}``; an unpaired B track keeps its name, prefixed with B's view.
 
     ``ambiguous`` (a list), where given, receives each two pairs whose crossed pairing costs
-    within :data:`PAIRING_AMBIGUITY` good pairs' costs of theirs (markers on nearly one epipolar line in both
-    views, static ones above all: two references so placed had been paired crosswise, 4 mm
-    off, unsaid): ``(A name, B name, A name, B name, cost, crossed cost)``.
+    within :data:`PAIRING_AMBIGUITY` good pairs' costs of theirs (markers on nearly one
+    epipolar line in both views, static ones above all: two references so placed had been
+    paired crosswise, 4 mm off, unsaid): ``(A name, B name, A name, B name, cost, crossed
+    cost)``.
     """
     from scipy.optimize import linear_sum_assignment
     va, vb = views

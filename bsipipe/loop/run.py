@@ -432,8 +432,8 @@ def run_loop(fit: Callable[[Any], Any], spec0, candidates: Sequence[Effect], *,
     veto : callable ``(before, after) -> str | None``, optional
         The stage's physical plausibility check of a candidate's fit: a reason (the candidate
         is turned down whatever its evidence) or None.  For what no amount of residual can
-        justify: an added effect that turns the law itself into another one (an Ogden
-        exponent's sign flipped) is absorbing something else.
+        justify: an added effect whose own parameter ends at the edge of its physical range
+        (fit-ogden: a Prony g of 0.98) is standing in for something else.
 
     Returns
     -------

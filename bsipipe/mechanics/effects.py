@@ -28,6 +28,7 @@ the same for stress-stretch tables (``model-order`` only: a table has no time).
 from __future__ import annotations
 
 import logging
+import re
 from dataclasses import dataclass, replace
 from typing import Mapping, Sequence
 
@@ -420,17 +421,14 @@ def force_noise_rms(logs: Sequence[LogData]) -> float | None:
 #: edges): a toe as long as a tenth of the specimen, a relaxation of g = 0.98, a compliance
 #: whose deflection is half the specimen, a relaxation time at the record's bounds -- the
 #: mechanism asked for more than it can be, so it is standing in for something else.
-_EDGES_REFUSED = {"contact_toe_mm": ("upper",), "g": ("upper",), "compliance_mm_per_n": ("upper",),
-                  "tau": ("lower", "upper")}
+_EDGES_REFUSED = {r"contact_toe_mm": ("upper",), r"g\d+": ("upper",), r"compliance_mm_per_n": ("upper",),
+                  r"tau\d+_s": ("lower", "upper")}
 
 
 def _refused_edge(name: str, edge: str) -> bool:
+    """Whether parameter ``name`` (per-log names carry ``[i]``) may not end on ``edge``."""
     base = name.split("[")[0]
-    for prefix, edges in _EDGES_REFUSED.items():
-        if edge in edges and (base == prefix or (prefix in ("g", "tau") and base.startswith(prefix)
-                                                 and base[len(prefix):len(prefix) + 1].isdigit())):
-            return True
-    return False
+    return any(edge in edges and re.fullmatch(pattern, base) for pattern, edges in _EDGES_REFUSED.items())
 
 
 def effect_veto(before, after) -> str | None:

@@ -356,10 +356,10 @@ class FitResult:
             else:
                 out[k] = v
         if getattr(self.spec, "specimen_scatter", False) and SCATTER_NAME not in out:
-            # the last log's factor: minus the others' logarithms
-            z = [v for k, v in self.values.items() if k.startswith(SCATTER_NAME + "[")]
-            if z:
-                out[SCATTER_NAME] = -float(sum(z))
+            # the last log's factor (minus the others' logarithms: scatter_factors)
+            n = sum(k.startswith(SCATTER_NAME + "[") for k in self.values) + 1
+            if n > 1:
+                out[SCATTER_NAME] = float(np.log(scatter_factors(self.values, n)[i]))
         return out
 
 
