@@ -1557,3 +1557,62 @@ def test_a_track_paired_with_another_marker_is_suspected():
     w = _pairing_suspects(pd.DataFrame(rows))
     assert len(w) == 1 and set(w[0]["markers"]) == {"M12"}
     assert _pairing_suspects(pd.DataFrame([r for r in rows if r["marker"] != "M12"])) == []
+
+
+def test_a_track_that_begins_late_or_has_gaps_is_reported_without_seeds(tmp_path):
+    """Without seeds, a marker hidden for the first 4 of 24 frames and again in frame 8 (the
+    probe's dark band of bone over two markers of a second view: 18 of 40 frames lost, no
+    event, no warning) is reported: an ``appeared`` event where its track begins, a
+    ``lost`` / ``refound`` pair around the gap (a track followed back across a gap had
+    reported nothing), and the ``tracks-incomplete`` warning naming the frames it was not
+    found in.  The four markers seen throughout are neither."""
+    n, size, dia = 24, 160, 5.0
+    rng = np.random.default_rng(3)
+    B = np.array([[0.25, 0.31], [0.69, 0.29], [0.5, 0.5], [0.32, 0.75], [0.75, 0.73]]) * size
+    field = RayField(bead_camera(size))
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    hidden = set(range(4)) | {8}
+    for i in range(n):
+        P = B + [0.4 * i, 0.25 * i]
+        if i in hidden:
+            P = P[:4]
+        cv2.imwrite(str(frames / f"f{i:02d}.png"), render_beads(P, dia, size, rng, field=field))
+    out = tmp_path / "out"
+    r = CliRunner().invoke(cli, ["track", "--view", f"cam1={frames}", "--diameter-px", "5", "--fps", "2",
+                                 "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    j = json.loads((out / "track.json").read_text())
+    m2 = pd.read_csv(out / "markers2d.csv")
+    last = m2[m2["frame"] == n - 1].set_index("marker")
+    late = last.index[np.hypot(last["x_px"] - (B[4, 0] + 0.4 * (n - 1)),
+                               last["y_px"] - (B[4, 1] + 0.25 * (n - 1))) < 1][0]
+    found = m2[m2["marker"] == late].set_index("frame")["found"]
+    assert sorted(found.index[~found]) == sorted(hidden)
+    ev = {(e["marker"], e["kind"], e["frame"]) for e in j["events"]}
+    assert {(late, "appeared", 4), (late, "lost", 8), (late, "refound", 9)} <= ev, ev
+    assert {e["marker"] for e in j["events"]} == {late}
+    w = {w["code"]: w for w in j["warnings"]}
+    assert set(w["tracks-incomplete"]["markers"]["cam1"]) == {late}
+    assert w["tracks-incomplete"]["markers"]["cam1"][late]["not_found_frames"] == sorted(hidden)
+    assert "not in 0-3, 8" in w["tracks-incomplete"]["message"]
+
+
+def test_gaps_of_automatic_tracks_without_events_get_them():
+    """The probe's band twin: a track followed back across a gap (found in frame 12, lost in
+    13-17, found 18-19, lost 20, found from 21) had no event at all in its view.  Every run
+    of lost rows between found ones now has a lost / refound pair (an existing pair is not
+    doubled), a late start an ``appeared`` event and an early end a ``lost`` event."""
+    from bsipipe.imaging.track import _gap_events
+    pattern = "............x.....xx.xxxxxxxxxxxxxxx..."
+    table = pd.DataFrame({"frame": np.arange(len(pattern)), "marker": "M11",
+                          "found": [c == "x" for c in pattern],
+                          "status": ["found" if c == "x" else "lost" for c in pattern]})
+    have = [{"view": "cam2", "frame": 20, "marker": "M11", "kind": "lost"},
+            {"view": "cam2", "frame": 21, "marker": "M11", "kind": "refound"}]
+    ev = _gap_events(table, have, "cam2")
+    assert [(e["kind"], e["frame"]) for e in ev] == [("appeared", 12), ("lost", 13), ("refound", 18),
+                                                     ("lost", 20), ("refound", 21), ("lost", 36)]
+    assert ev[2]["gap_frames"] == 5
+    whole = table.assign(found=True, status="found")
+    assert _gap_events(whole, [], "cam2") == []

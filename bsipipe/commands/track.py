@@ -1159,6 +1159,55 @@ def _rarely_found(table: pd.DataFrame) -> dict[str, dict[str, tuple[int, int]]]:
     return out
 
 
+#: Automatic tracks found in fewer than this fraction of their view's frames are warned
+#: (``tracks-incomplete``).
+INCOMPLETE = 0.9
+
+
+def _runs(frames) -> str:
+    """``0-17, 20, 31-33``: the frame numbers ``frames`` (sorted) as runs."""
+    out, fr = [], [int(f) for f in frames]
+    k = 0
+    while k < len(fr):
+        e = k
+        while e + 1 < len(fr) and fr[e + 1] == fr[e] + 1:
+            e += 1
+        out.append(str(fr[k]) if e == k else f"{fr[k]}-{fr[e]}")
+        k = e + 1
+    return ", ".join(out)
+
+
+def _tracks_incomplete(table: pd.DataFrame) -> list[dict]:
+    """Without seeds, the ``tracks-incomplete`` warning: tracks found in fewer than
+    :data:`INCOMPLETE` of their view's frames (rows of missing frames not counted), with the
+    frames they were not found in.  A seeded marker the tracker cannot find is searched for
+    where it should be and its losses are events; an automatic track that begins late or
+    ends early was simply not there for the tracker.  A dark band of bone across a twin's
+    second view had hidden two markers for 18 of 40 frames with no word."""
+    from ..quality import warning
+    t = table[table["status"] != "missing-frame"] if "status" in table.columns else table
+    bad: dict[str, dict[str, dict]] = {}
+    for (v, m), g in t.groupby(["view", "marker"], sort=False):
+        ok = g["found"].to_numpy(bool) | (g["status"].to_numpy(object) == "merged")
+        n = len(ok)
+        if n and ok.sum() < INCOMPLETE * n:
+            bad.setdefault(str(v), {})[str(m)] = {"found": int(ok.sum()), "frames": n,
+                                                  "not_found": g["frame"].to_numpy()[~ok].tolist()}
+    if not bad:
+        return []
+    listed = "; ".join(f"{v}: " + ", ".join(f"{m} {d['found']} of {d['frames']} (not in {_runs(d['not_found'])})"
+                                             for m, d in ms.items()) for v, ms in bad.items())
+    return [warning(
+        "tracks-incomplete",
+        f"track: without seeds, tracks found in fewer than {100 * INCOMPLETE:.0f} % of their view's frames ({listed}): "
+        "hidden for part of the sequence (something over the field, bone, the edge of the field) or too faint; "
+        "their 3-D points are missing there, and a track that begins late may be a marker lost earlier under "
+        "another name: look at those frames, or give seeds (each seeded marker is searched for where it should "
+        "be, and its losses are events)",
+        log, markers={v: {m: {k: d[k] for k in ("found", "frames")} | {"not_found_frames": d["not_found"]}
+                          for m, d in ms.items()} for v, ms in bad.items()})]
+
+
 def _sequence_warnings(table: pd.DataFrame, events: list[dict], cfg, views, info: dict, seeded: bool):
     """What the frames themselves tell against the tracks: frames missing from the numbering
     (their rows added to the table, status missing-frame), frames without any marker, views
@@ -1685,6 +1734,8 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         w = _calibration_fit_warning(st["loop"], table, cal_rms, pair)
         if w is not None:
             warnings.append(w)
+    if seed_df is None:
+        warnings += _tracks_incomplete(table)      # after the views' tracks are named alike
     smoothing = None
     if cfg.smooth:
         table, smoothing = _smooth(table)

@@ -25,6 +25,8 @@ Every change is reported as an event (``events``: view, frame, marker, kind, det
   round at a cost less than ``ambiguity_px**2`` higher: an identity swap is possible here.
 - ``partial``: the marker's amplitude fell below ``partial_fraction`` of its median (it is
   partly hidden, e.g. entering the shadow of an instrument): its centre may be biased.
+- ``appeared`` (automatic tracks): first found after the view's first frame (hidden,
+  outside the field or too faint before it).
 - ``frame-shift`` (``marker`` None): the whole picture moved between two frames (the C-arm
   or the head jolted; ``dx_px``, ``dy_px``): the markers seen in the frame before were
   missed, or found off their predictions by a common offset, and the offset most of them
@@ -1052,7 +1054,62 @@ def _swept_result(view, markers, recs, back, times, events, settings, S, fov_inf
         if "other" in e:
             e["other"] = by_name[e["other"]]
         out_events.append(e)
+    out_events = _gap_events(table, out_events, view)
     return TrackResult(table, out_events, fov_info, {**settings.__dict__, **S})
+
+
+def _gap_events(table: pd.DataFrame, events: list[dict], view: str) -> list[dict]:
+    """``events`` with a ``lost`` / ``refound`` pair for every run of ``lost`` rows of an
+    automatic track that has none (a track followed back past a gap reports nothing on its
+    way, and the forward sweep never saw the frames before the track began), an ``appeared``
+    event where a track is first found after the view's first frame, and a ``lost`` event
+    where it is last found before the view's last frame with none after it; in frame order.
+
+    A band of bone crossing two markers of a twin's second view had hidden one for its first
+    12 frames and the other for 18 with gaps, with 0 events in that view."""
+    if table.empty:
+        return events
+    have = {(e["marker"], e["frame"], e["kind"]) for e in events if e.get("marker") is not None}
+    lost_at: dict[str, list[int]] = {}
+    for e in events:
+        if e.get("marker") is not None and e["kind"] == "lost":
+            lost_at.setdefault(e["marker"], []).append(int(e["frame"]))
+    added = []
+    for m, g in table.groupby("marker", sort=False):
+        fr = g["frame"].to_numpy(np.int64)
+        st = g["status"].to_numpy(object)
+        seen = np.flatnonzero(g["found"].to_numpy(bool) | (st == "merged"))
+        if not len(seen):
+            continue
+        a, b = int(seen[0]), int(seen[-1])
+        if a > 0:
+            added.append({"view": view, "frame": int(fr[a]), "marker": m, "kind": "appeared",
+                          "frames_before": int(a),
+                          "detail": f"first found in frame {int(fr[a])}, not in the {a} frame(s) before it (hidden, "
+                                    "outside the field or too faint)"})
+        gap = (st == "lost")
+        k = a
+        while k <= b:
+            if not gap[k]:
+                k += 1
+                continue
+            e = k
+            while e <= b and gap[e]:
+                e += 1
+            f0, f1 = int(fr[k]), int(fr[e])      # e <= b: the run ends before a found row
+            if not any(f0 <= x < f1 for x in lost_at.get(m, ())):
+                added.append({"view": view, "frame": f0, "marker": m, "kind": "lost",
+                              "detail": "not found; followed across the gap"})
+                if (m, f1, "refound") not in have:
+                    added.append({"view": view, "frame": f1, "marker": m, "kind": "refound", "gap_frames": int(e - k),
+                                  "detail": f"found again after {e - k} frame(s)"})
+            k = e
+        if b < len(fr) - 1 and not any(x > int(fr[b]) for x in lost_at.get(m, ())):
+            added.append({"view": view, "frame": int(fr[b + 1]), "marker": m, "kind": "lost",
+                          "detail": "not found again to the end of the sequence"})
+    if not added:
+        return events
+    return sorted(events + added, key=lambda e: e["frame"])
 
 
 def _track_auto(frames, diameter_px, polarity, *, view, fps, roi, detection, settings, on_frame) -> TrackResult:
