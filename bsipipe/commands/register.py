@@ -27,8 +27,9 @@ Warnings (``registration.json`` ``warnings``, also logged; codes):
 ``label-swap``
     The loop exchanged two CT labels (the ``label-swap`` effect): the file's labels are wrong.
 ``large-fre``
-    The final FRE is more than :data:`NOISE_FACTOR` times the tracking noise and no effect
-    explains it (with three references the moving-reference test cannot run).
+    The final FRE is more than the tracking noise (times :data:`NOISE_FACTOR`) and a CT
+    localisation error of :data:`CT_FLE_MAX_MM` can give together, and no effect explains it
+    (with three references the moving-reference test cannot run).
 ``ct-check``
     Markers localised in CT that are not references lie more than :data:`NOISE_FACTOR` times
     the larger of the tracking noise and the estimated FLE, and more than
@@ -51,6 +52,12 @@ Warnings (``registration.json`` ``warnings``, also logged; codes):
     and after); frames with fewer are listed and left as they were.
 ``tre-not-estimated``
     No degrees of freedom left for the FLE.
+``tre-unbounded``
+    The FLE is estimated on two degrees of freedom (three references and a scale): the
+    expected TRE is unbounded (``tre_mm`` empty); the perturbation's p95 still bounds it.
+
+The tracking noise and the references' motion test use the raw 3-D points
+(``x_mm_raw, y_mm_raw, z_mm_raw``) where ``markers3d.csv`` has them, the fit the smoothed.
 """
 
 from __future__ import annotations
@@ -231,14 +238,21 @@ def choose_frame(tracks: pd.DataFrame, references: Sequence[str], frame: int | N
     return chosen, found, missing
 
 
-def _tracks_array(tracks: pd.DataFrame, names: Sequence[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(frames (F,), time_s (F,), positions (F, len(names), 3)) with NaN where missing."""
+#: ``markers3d.csv``'s columns of the raw (unsmoothed) 3-D points, which ``bsipipe track``
+#: writes beside the smoothed ``x_mm, y_mm, z_mm``.
+RAW_COLUMNS = ("x_mm_raw", "y_mm_raw", "z_mm_raw")
+
+
+def _tracks_array(tracks: pd.DataFrame, names: Sequence[str],
+                  columns: Sequence[str] = ("x_mm", "y_mm", "z_mm")) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(frames (F,), time_s (F,), positions (F, len(names), 3)) with NaN where missing;
+    ``columns``: the three position columns to read."""
     frames = np.array(sorted(tracks["frame"].unique()), dtype=np.int64)
     pos = np.full((len(frames), len(names), 3), np.nan)
     fidx = {f: i for i, f in enumerate(frames)}
     sub = tracks[tracks["marker"].isin(list(names))]
     col = {n: j for j, n in enumerate(names)}
-    for f, m, x, y, z in sub[["frame", "marker", "x_mm", "y_mm", "z_mm"]].itertuples(index=False):
+    for f, m, x, y, z in sub[["frame", "marker", *columns]].itertuples(index=False):
         pos[fidx[f], col[m]] = (x, y, z)
     time = tracks.groupby("frame")["time_s"].first().reindex(frames).to_numpy(float)
     return frames, time, pos
@@ -605,6 +619,13 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
         warnings.append(warning("references-missing", "register: references missing: " + "; ".join(
             f"{r}: {w}" for r, w in missing.items()), log, references=dict(missing)))
     frames, time, pos = _tracks_array(tracks, found)
+    # the frame-to-frame statistics (the tracking noise, the motion test) read the raw 3-D
+    # points where the file has them: smoothed points wander slowly, not frame by frame, so a
+    # noise taken from their scatter is several times too small and any wander is "motion"
+    # (a static reference of the clean twin, 0.013 mm of wander within its stated sd, had
+    # been dropped as moved, delta BIC 2917, in 6 of 13 tracked twins)
+    raw = all(c in tracks.columns for c in RAW_COLUMNS) and tracks[list(RAW_COLUMNS)].notna().any().all()
+    pos_stat = _tracks_array(tracks, found, RAW_COLUMNS)[2] if raw else pos
     fi = int(np.flatnonzero(frames == F)[0])
     if cfg.frame is None and len(found) < len(in_ct):
         warnings.append(warning("no-frame-with-all-references",
@@ -639,7 +660,7 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
     # Markers localised in CT that are not references: an independent check of any transform
     c_names = [n for n in t_names if n in ct_pos and n not in found]
     data = RegistrationData(names=list(found), x_mm=pos[fi].copy(), y_mm=y_refs,
-                            tracks_mm=pos, time_s=np.where(np.isfinite(time), time, frames.astype(float)),
+                            tracks_mm=pos_stat, time_s=np.where(np.isfinite(time), time, frames.astype(float)),
                             check_x_mm=np.array([targets[n] for n in c_names]).reshape(-1, 3),
                             check_y_mm=np.array([ct_pos[n] for n in c_names]).reshape(-1, 3))
     spec0 = RegistrationSpec(scale=cfg.scale)
@@ -655,29 +676,51 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
     fre = np.linalg.norm(fit.residual_vectors, axis=1)
     fre_rms = float(np.sqrt(np.mean(fre[fit.used] ** 2)))
     fle, fle_dof = reg.estimate_fle(fit.residual_vectors[fit.used], scale=spec.scale)
-    noise = reg.tracking_noise(pos[:, fit.used])
+    noise = reg.tracking_noise(pos_stat[:, fit.used])
     noise_3d = float(np.sqrt(3.0) * noise["sigma_mm"])
+    # the FRE noise can give: the tracking noise and the CT localisation, at most about a voxel
+    # (Fitzpatrick: <FRE^2> = (3N - p) / 3N FLE^2, 1 - 2/N for a rigid fit)
+    n_fit = 3 * len(used)
+    ct_fre = CT_FLE_MAX_MM * math.sqrt(max(n_fit - reg.n_params(spec.scale), 0) / n_fit)
+    fre_limit = math.hypot(NOISE_FACTOR * noise_3d, ct_fre) if np.isfinite(noise_3d) else float("nan")
     swaps = [{"references": list(c), "note": _relabel_note(c)} for c in spec.swapped]
     warnings += _reference_effect_warnings(report, has_check=bool(c_names))
     late = _late_frame_warning(tracks, F, targets, target_frames, found, NOISE_FACTOR * noise_3d, in_ct,
                                given=cfg.frame is not None)
     if late is not None:
         warnings.append(late)
-    if np.isfinite(noise_3d) and fre_rms > NOISE_FACTOR * noise_3d:
+    if np.isfinite(fre_limit) and fre_rms > fre_limit:
+        # against the tracking noise alone (10 x 0.0016 mm from smoothed points) every
+        # registration of a tracked twin at CT noise 0.1-0.5 mm had been warned
         why = ("with three references the moving-reference test cannot run, so a moved or mislabelled reference "
                "cannot be told from the others" if len(used) <= MIN_REFERENCES
                else "no loop effect explains it" if cfg.loop else "the loop was off (--no-loop)")
         warnings.append(warning(
-            "large-fre", f"register: FRE RMS {fre_rms:.3g} mm is {fre_rms / noise_3d:.0f} times the references' "
-                         f"tracking noise ({noise_3d:.2g} mm, 3-D RMS) and {why}: a reference moved or is "
-                         f"mislabelled, or the CT localisation is poor; the transform may be wrong", log,
-            fre_rms_mm=fre_rms, tracking_noise_mm=noise_3d, n_used=len(used)))
+            "large-fre", f"register: FRE RMS {fre_rms:.3g} mm is more than the references' tracking noise "
+                         f"({noise_3d:.2g} mm, 3-D RMS, times {NOISE_FACTOR:g}) and a CT localisation error of "
+                         f"{CT_FLE_MAX_MM:g} mm (about a voxel; {ct_fre:.2g} mm of FRE with {len(used)} references) "
+                         f"can give ({fre_limit:.3g} mm), and {why}: a reference "
+                         f"moved or is mislabelled, or the CT localisation is poor; the transform may be wrong", log,
+            fre_rms_mm=fre_rms, tracking_noise_mm=noise_3d, limit_mm=fre_limit, n_used=len(used)))
     t_xyz = np.array([targets[n] for n in t_names]).reshape(-1, 3)
     x_used = data.x_mm[fit.used]
     if np.isfinite(fle) and len(t_names):
-        tre = reg.tre_linearized(T, x_used, t_xyz, fle, scale=spec.scale)
+        # the FLE is estimated on fle_dof degrees of freedom (6 with four references): the
+        # expected squared TRE is the plug-in one times E[nu / chi2_nu] = nu / (nu - 2), finite
+        # only for nu > 2 (the probe's true / stated TRE had RMS 1.13-1.32 with four references,
+        # 1.25-2.5 with three); the perturbation draws the FLE likewise
+        tre = reg.tre_linearized(T, x_used, t_xyz, fle, scale=spec.scale) * (
+            math.sqrt(fle_dof / (fle_dof - 2.0)) if fle_dof > 2 else float("nan"))
         pert = (reg.tre_perturbation(T, x_used, t_xyz, fle, scale=spec.scale, n_draws=cfg.perturbation_draws,
-                                     seed=cfg.seed) if cfg.perturbation_draws > 0 else None)
+                                     seed=cfg.seed, fle_dof=fle_dof) if cfg.perturbation_draws > 0 else None)
+        if pert is not None and fle_dof <= 2:
+            pert["rms_mm"] = np.full(len(t_names), np.nan)
+        if fle_dof <= 2:
+            warnings.append(warning(
+                "tre-unbounded", f"register: the FLE is estimated on {fle_dof} degree(s) of freedom only (three "
+                                 "references and a scale): the expected TRE is unbounded, tre_mm is empty; "
+                                 "tre_perturbation_p95_mm still bounds it (one more reference would give a TRE)",
+                log, fle_dof=int(fle_dof)))
     else:
         tre = np.full(len(t_names), np.nan)
         pert = None
@@ -754,7 +797,9 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
         "reference_configuration": {"ct": conf, "xray": conf_x},
         "tracking_noise": {**noise, "rms_3d_mm": noise_3d,
                            "note": "per-axis scatter of the used references about their mean positions over "
-                                   "the trial, their common translation taken out"},
+                                   "the trial, their common translation taken out" + (
+                                       "; of the raw 3-D points (x_mm_raw, ..), as the motion test" if raw else
+                                       "")},
         "model": spec.describe(),
         "fre_mm": {n: float(e) for n, e in zip(found, fre)},
         # the references' CT positions (labels given back where the loop found them mixed up):
@@ -768,12 +813,14 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
         "tre_mm": {n: float(e) for n, e in zip(t_names, tre)},
         "tre_method": ("first-order propagation of the estimated FLE through the fit (equals Fitzpatrick, West & "
                        "Maurer 1998 for a rigid fit), in the CT frame at each marker's X-ray position in the "
-                       "first frame it is found in"),
+                       "first frame it is found in, times sqrt(nu / (nu - 2)) for the FLE's estimation on nu = "
+                       "fle_dof degrees of freedom (the expected squared TRE; none for nu <= 2)"),
         "tre_perturbation_mm": None if pert is None else {n: float(e) for n, e in zip(t_names, pert["rms_mm"])},
         "tre_perturbation_p95_mm": None if pert is None else {n: float(e) for n, e in zip(t_names, pert["p95_mm"])},
         "tre_perturbation": None if pert is None else {"n_draws": pert["n_draws"], "seed": pert["seed"],
                                                         "method": "refit after isotropic Gaussian FLE added to the "
-                                                                  "fitted CT references"},
+                                                                  "fitted CT references, each draw's FLE from its "
+                                                                  "estimate's distribution (FLE^2 nu / chi2_nu)"},
         "ct_check_mm": check,
         "ct_check_rms_mm": float(np.sqrt(np.mean(np.square(list(check.values()))))) if check else None,
         "ct_check_note": "markers localised in CT that are not references: |T(x) - x_ct|, x their X-ray "
