@@ -122,10 +122,11 @@ def _umask() -> int:
     return mask
 
 
-def atomic_write_bytes(path: str | os.PathLike, data) -> None:
-    """Write to a temporary file in the same folder, fsync, then rename over ``path``.
-
-    ``data`` is bytes, or a binary file object read from its start (copied in blocks)."""
+def write_temporary(path: str | os.PathLike, data) -> Path:
+    """Write ``data`` in full to a new temporary file beside ``path`` (fsync'd, with the
+    permissions an ordinary file would get) and return its path, for the caller to rename
+    over ``path``; nothing is left on failure.  ``data`` is bytes, or a binary file object
+    read from its start (copied in blocks)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -140,12 +141,21 @@ def atomic_write_bytes(path: str | os.PathLike, data) -> None:
             os.fsync(f.fileno())
         # mkstemp creates 0600; a result file gets the permissions an ordinary file would.
         os.chmod(tmp, 0o666 & ~_umask())
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return Path(tmp)
+
+
+def atomic_write_bytes(path: str | os.PathLike, data) -> None:
+    """Write to a temporary file in the same folder, fsync, then rename over ``path``.
+
+    ``data`` is bytes, or a binary file object read from its start (copied in blocks)."""
+    tmp = write_temporary(path, data)
+    try:
         os.replace(tmp, path)
     except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
+        tmp.unlink(missing_ok=True)
         raise
 
 
@@ -177,10 +187,16 @@ def check_output_folder(out: str | os.PathLike) -> None:
 class ResultSet:
     """Collects a command's result files and writes them all-or-nothing.
 
-    Nothing touches ``out`` until :meth:`commit`; then every file is written to a
-    temporary file beside its target and renamed. The JSON result named ``primary`` (the
-    file that says a run is complete, e.g. ``fit.json``) is renamed last, so a run killed
-    part-way never leaves a primary result next to stale or missing companions.
+    Nothing touches ``out`` until :meth:`commit`.  Then every file is first written in full
+    to a temporary file beside its target (a failure there, a full disk, removes them all
+    and leaves an earlier run's results as they were); only then is the earlier run's
+    primary result removed, the files it wrote that this run does not (``outputs``, names
+    or glob patterns relative to ``out``) with it, and each temporary file renamed over its
+    target, the JSON result named ``primary`` (the file that says a run is complete, e.g.
+    ``fit.json``) last.  A run killed part-way so never leaves a primary result next to
+    stale or missing companions.  (Renaming each file as it was written had left, on a
+    disk full at the second run's ``material.k``, the first run's ``fit.json`` beside the
+    second run's ``material.inp``.)
 
     >>> rs = ResultSet("unused", primary="a.json")
     >>> rs.add_text("b.txt", "x"); sorted(rs.files)
@@ -192,7 +208,8 @@ class ResultSet:
         self.primary = primary
         # every file the command can write: one an earlier run left that this run does not
         # write is removed at commit (a 2-D run into a folder that holds a 3-D run's
-        # markers3d.csv must not leave it beside its own results)
+        # markers3d.csv must not leave it beside its own results; calibrate's per-view
+        # mayacam_<view>.txt of another view beside a calibration.json without it)
         self.outputs = tuple(outputs)
         # bytes, or (for tables) an anonymous temporary file: a long sequence's CSV tables
         # then wait on disk, not in memory (unlinked at creation, so a kill leaves nothing)
@@ -226,17 +243,41 @@ class ResultSet:
             sys.modules["matplotlib.pyplot"].close(fig)
         self.add_bytes(name, buf.getvalue())
 
+    def _stale(self) -> list[Path]:
+        """The files in ``out`` an earlier run wrote (``outputs``) that this run does not."""
+        out = []
+        for pat in self.outputs:
+            for p in (self.out.glob(pat) if any(c in pat for c in "*?[") else [self.out / pat]):
+                if p.is_file() and p.relative_to(self.out).as_posix() not in self.files:
+                    out.append(p)
+        return out
+
     def commit(self) -> list[Path]:
         self.out.mkdir(parents=True, exist_ok=True)
-        for n in self.outputs:
-            if n not in self.files and (self.out / n).is_file():
-                (self.out / n).unlink()
         names = sorted(self.files, key=lambda n: (n == self.primary, n))
-        written = []
-        for n in names:
-            atomic_write_bytes(self.out / n, self.files[n])
-            written.append(self.out / n)
-        for f in self.files.values():
-            if hasattr(f, "close"):
-                f.close()
+        staged: list[tuple[str, Path]] = []
+        try:
+            for n in names:
+                staged.append((n, write_temporary(self.out / n, self.files[n])))
+        except BaseException:
+            for _, tmp in staged:
+                tmp.unlink(missing_ok=True)
+            raise
+        finally:
+            for f in self.files.values():
+                if hasattr(f, "close"):
+                    f.close()
+        try:
+            if self.primary is not None:
+                (self.out / self.primary).unlink(missing_ok=True)
+            for p in self._stale():
+                p.unlink()
+            written = []
+            for n, tmp in staged:
+                os.replace(tmp, self.out / n)
+                written.append(self.out / n)
+        except BaseException:
+            for _, tmp in staged:
+                tmp.unlink(missing_ok=True)
+            raise
         return written

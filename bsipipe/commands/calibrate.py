@@ -591,7 +591,10 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
     stereo_frames: dict[str, dict] = {}
     ambiguous_any = False
     warnings: list[dict] = []
-    rs = ResultSet(out, primary="calibration.json")
+    # a view's files of an earlier run into this folder that this run does not calibrate go
+    # (calibrate --view left, then --view right: mayacam_left.txt had stayed beside a
+    # calibration.json without left)
+    rs = ResultSet(out, primary="calibration.json", outputs=("mayacam_*.txt", "residuals_*.png"))
     inputs: list[str] = []
     camera_pixels: dict[str, set] = {}     # camera -> the digests of its images' pixels
     for name, sources in cameras.items():

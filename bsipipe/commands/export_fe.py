@@ -228,7 +228,10 @@ def run(config: str | os.PathLike, *, out: str | os.PathLike) -> dict:
     u = unit_system(cfg.deck.units)
     manifest = _manifest(h, cfg, files, sources, reg, machine_log, u)
     manifest["provenance"] = provenance(cfg, inputs, command="export-fe")
-    rs = ResultSet(out, primary="manifest.json")
+    # an earlier hand-off's files this one does not write go (another solver's deck, springs)
+    rs = ResultSet(out, primary="manifest.json", outputs=(
+        "amplitude.csv", "indentor_trajectory.csv", "markers_fe.csv", "springs.csv", "target_force.csv",
+        "abaqus/*.inp", "febio/*.feb", "febio/*.feb.xml", "lsdyna/*.k"))
     for f in files:
         rs.add_text(f.path, f.text)
     rs.add_json("manifest.json", manifest)

@@ -114,13 +114,14 @@ class StereoSpec:
     frame_shift: bool = False        # each view's picture shifted by a common offset per frame
     capture: bool = False            # a view's track held by another spot: re-found along the other view's ray
     frame_steps: bool = False        # with time_offset: the offset steps by whole frames (a view lost frames)
+    rig_mismatch: bool = False       # each marker's rays miss each other by a steady amount (the rig moved)
 
     def describe(self) -> str:
         parts = [n for n, on in (("view-time-offset", self.time_offset and not (self.clock_drift or self.frame_steps)),
                                  ("view-clock-drift", self.clock_drift), ("dropped-frames", self.frame_steps),
                                  ("frame-shift", self.frame_shift),
                                  ("identity-swap", self.swaps), ("track-capture", self.capture),
-                                 ("occlusion", self.occlusion)) if on]
+                                 ("occlusion", self.occlusion), ("rig-mismatch", self.rig_mismatch)) if on]
         return "stereo" + ("+" + "+".join(parts) if parts else "")
 
 
@@ -284,10 +285,15 @@ class StereoFit:
     success: bool = True
     frame_shifts: dict | None = None  # view -> (F, 2) px each frame's common shift taken out (frame-shift)
     captures: list = field(default_factory=list)  # track-capture: re-found runs (find_captures)
+    gap_bias: np.ndarray | None = None  # rig-mismatch: each residual's marker's steady gap (mm), taken out
 
     @property
     def ray_gap_rms_mm(self) -> float:
-        return float(np.sqrt(np.mean(self.residuals ** 2))) if len(self.residuals) else float("nan")
+        """RMS of the ray gaps themselves (a steady per-marker gap the model explains included)."""
+        if not len(self.residuals):
+            return float("nan")
+        g = self.residuals if self.gap_bias is None else self.residuals + self.gap_bias
+        return float(np.sqrt(np.mean(g ** 2)))
 
     @property
     def reproj_rms_px(self) -> float:
@@ -1780,8 +1786,35 @@ def stereo_fit(d: StereoData, spec: StereoSpec, *, max_offset_s: float | None = 
     pts["marker"] = pts["marker"].astype(str)
     cov = {"v_perp_mm_s": np.nan_to_num(v_perp[fi, mi]), "speed_mm_s": np.nan_to_num(speed[fi, mi]),
            "time_s": ta_s[fi]}
+    bias = None
+    if spec.rig_mismatch:
+        res, bias, info = _rig_mismatch(res, mi, d.markers)
+        params["rig_mismatch"] = info
+        n_params += info["n_markers"]
     return StereoFit(spec, pts, res, params, n_params, cov, mi, fi, swaps, xb, frame_shifts=shifts,
-                     captures=captures)
+                     captures=captures, gap_bias=bias)
+
+
+def _rig_mismatch(res: np.ndarray, mi: np.ndarray, markers: list[str]) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The ``rig-mismatch`` effect: each marker's mean signed ray gap (over its two-view
+    points, two at least) taken out of its residuals.  A rig whose views no longer match the
+    calibration (a C-arm moved or turned since, a calibration of another session) makes each
+    marker's rays miss each other by an amount that changes only with where it is, so
+    steadily over millimetres of motion; with the markers moving at a steady speed, a time
+    offset between the views fits part of it (a view turned 0.3 degrees: an offset of 0.25
+    s kept on a twin that has none; 1 % on the focal length 0.53 s; 2 mm across the baseline
+    -0.72 s).  The 3-D points are left as they are: the gap shows the error across the rays,
+    not along them.  Returns the residuals, the bias per residual and the parameters."""
+    M = len(markers)
+    n = np.bincount(mi, minlength=M)
+    s = np.bincount(mi, weights=res, minlength=M)
+    b = np.where(n >= 2, s / np.maximum(n, 1), 0.0)
+    bias = b[mi]
+    used = n >= 2
+    info = {"bias_mm": {markers[j]: float(b[j]) for j in np.flatnonzero(used)},
+            "rms_bias_mm": float(np.sqrt(np.mean(b[used] ** 2))) if used.any() else 0.0,
+            "n_markers": int(used.sum())}
+    return res - bias, bias, info
 
 
 def _interp_trajectory(t: np.ndarray, X: np.ndarray) -> np.ndarray:
@@ -1895,6 +1928,12 @@ EFFECTS = (
            "outlying gaps at the frames the tracker flagged (next to a loss, amplitude drop)",
            lambda s: None if s.occlusion else replace(s, occlusion=True), ("excluded_partly_hidden",),
            evidence=_occlusion_evidence),
+    Effect("rig-mismatch",
+           "the views no longer match the calibration (a C-arm moved or turned since it was calibrated, or the "
+           "calibration is another session's): each marker's rays miss each other by a steady amount",
+           "each marker's signed ray gap has its own steady mean, static markers' too, whatever their speed "
+           "(group means of the residual)",
+           lambda s: None if s.rig_mismatch else replace(s, rig_mismatch=True), ("rig_mismatch",)),
 )
 
 
