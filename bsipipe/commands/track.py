@@ -1474,6 +1474,21 @@ def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, 
               "gap; a repeated frame's copies hold nothing new and have no 3-D point); markers3d.csv's time_s has "
               "the times put right, markers2d.csv keeps each view's own count. Check the recording (a capture "
               "that skipped or repeated frames, frame files deleted and the rest renumbered)", log, steps=steps))
+    mis = fit.params.get("rig_mismatch")
+    if mis:
+        # the loop's rig-mismatch: the rays miss each other by a steady field over the markers
+        scatter = float(np.sqrt(np.mean(fit.residuals ** 2))) if len(fit.residuals) else float("nan")
+        worst = sorted(mis["bias_mm"].items(), key=lambda kv: -abs(kv[1]))[:5]
+        warnings.append(warning(
+            "rig-mismatch",
+            f"track: the loop found the views' rays missing each other by a steady amount that changes with where "
+            f"the marker is (rig-mismatch: RMS {mis['rms_bias_mm']:.3g} mm over {mis['n_markers']} markers, e.g. "
+            + ", ".join(f"{m} {b:+.3g}" for m, b in worst)
+            + f" mm, against {scatter:.2g} mm of ray-gap scatter about it): the views no longer match the "
+              "calibration (a C-arm moved or turned since it was calibrated, or the calibration is another "
+              "session's). The 3-D points carry an error of at least this size, along as well as across the "
+              "rays, that their sds do not show: calibrate again with the C-arms as they stood for this trial",
+            log, rms_bias_mm=mis["rms_bias_mm"], bias_mm=mis["bias_mm"], ray_gap_scatter_mm=scatter))
     points3d = fit.points.copy()
     if time_unit == "frame":
         points3d["time_s"] = np.nan

@@ -103,7 +103,10 @@ reported in decreasing order of :math:`\mu_i`.  The 95 %
 intervals come from the Jacobian at the optimum (central differences, the contact priors'
 rows included), :math:`\mathrm{cov} = s^2 (J^T J)^{-1}`, :math:`s^2 = \mathrm{SSE}/(n - p)`
 (the priors' rows and the shifts they hold leave :math:`n - p` of the data as it is);
-with several logs the weights balance the logs, they are not the noise (every sample has
+where a log's residuals are serially correlated (lag-1 above :math:`2/\sqrt m`: a load
+channel low-pass filtered, or sampled faster than its noise changes) the covariance is
+Newey-West's instead (:func:`_serial_covariance`; the white form had made the intervals 4.5
+times too narrow on AR(1) 0.9 noise); with several logs the weights balance the logs, they are not the noise (every sample has
 the load cell's), so the covariance is the weighted estimator's sandwich,
 :math:`s^2 (J^T J)^{-1} J^T W J (J^T J)^{-1}` (:math:`J` the weighted residual's Jacobian,
 :math:`W` the rows' squared weights, :math:`s^2` from the unweighted residuals): a short log
@@ -328,6 +331,10 @@ class FitResult:
     n_starts: int = 0
     kind: str = "logs"                                   # "logs" | "tables"
     at_bound: dict = field(default_factory=dict)         # flat name -> "lower" | "upper": ended on its range's edge
+    #: the effective share of independent samples, (1 - rho) / (1 + rho) of the residual's
+    #: lag-1 autocorrelation (samples-weighted over the logs) where it is significant, else 1:
+    #: the loop weighs an effect's delta BIC on that many samples (:func:`bsipipe.loop.run_loop`)
+    serial_factor: float = 1.0
 
     @property
     def declared_params(self) -> list[str]:
@@ -1112,6 +1119,74 @@ def _covariance(jac: np.ndarray, sse: float, n: int, p: int, row_weights: np.nda
     return s2 * inv
 
 
+#: Andrews' (1991) AR(1) plug-in bandwidth constant for the Bartlett kernel.
+_ANDREWS_BARTLETT = 1.1447
+
+
+def _serial(e: np.ndarray) -> tuple[float, int]:
+    """Lag-1 autocorrelation of one log's residuals (clipped to [0, 0.97]) and the Bartlett
+    kernel's bandwidth for it (Andrews' AR(1) plug-in, at most a quarter of the samples)."""
+    m = len(e)
+    ss = float(np.dot(e, e))
+    if m < 8 or ss <= 0:
+        return 0.0, 0
+    rho = min(max(float(np.dot(e[1:], e[:-1]) / ss), 0.0), 0.97)
+    a = 4 * rho ** 2 / ((1 - rho) ** 2 * (1 + rho) ** 2)
+    return rho, int(min(np.ceil(_ANDREWS_BARTLETT * (a * m) ** (1 / 3)), m // 4))
+
+
+def _serial_covariance(jac: np.ndarray, r: np.ndarray, segments: Sequence[tuple[int, int]], n: int, p: int,
+                       cov: np.ndarray) -> tuple[np.ndarray, dict]:
+    r"""The covariance with the noise's serial correlation: Newey-West's (Bartlett kernel,
+    Andrews' AR(1) bandwidth per log) :math:`rac{n}{n-p} B^{-1} \hat S B^{-1}`,
+    :math:`B = J^T J`, :math:`\hat S = \sum_l w_l \sum_t g_t g_{t-l}^T`, :math:`g_t = J_t r_t`
+    within each log (``segments``: its rows; the rows outside, the contact priors', count
+    alone), where a log's residuals are significantly autocorrelated (lag-1 above
+    :math:`2/\sqrt m`); else ``cov`` as it is.  A load channel low-pass filtered, or sampled
+    faster than its noise changes, has correlated noise: the white-noise covariance had made
+    95 % intervals 4.5 times too narrow (AR(1) 0.9: mu covered in 6 of 29 seeds).  Returns
+    the covariance and what was found per log."""
+    info = {"lag1": [], "bandwidth": [], "method": "white"}
+    for a, b in segments:
+        rho, L = _serial(r[a:b])
+        info["lag1"].append(rho)
+        info["bandwidth"].append(L)
+    serial = [rho > 2.0 / np.sqrt(max(b - a, 1)) and L >= 1
+              for (a, b), rho, L in zip(segments, info["lag1"], info["bandwidth"])]
+    if not any(serial) or n <= p or not np.all(np.isfinite(jac)):
+        return cov, info
+    _, sv, vt = np.linalg.svd(jac, full_matrices=False)
+    tol = np.finfo(float).eps * max(jac.shape) * (sv[0] if len(sv) else 0.0)
+    good = sv > tol
+    inv = (vt[good].T / sv[good] ** 2) @ vt[good]
+    inside = np.zeros(len(r), bool)
+    meat = np.zeros((p, p))
+    for (a, b), rho in zip(segments, info["lag1"]):
+        inside[a:b] = True
+        # prewhitened (Andrews & Monahan 1992): the AR(1) taken out, the rest's Bartlett
+        # sum, recoloured by 1 / (1 - rho)^2; the kernel alone, on rho 0.9, had left the
+        # intervals 1.6 times too narrow
+        e = r[a:b]
+        w = np.r_[e[0] * np.sqrt(max(1.0 - rho ** 2, 0.0)), e[1:] - rho * e[:-1]]
+        gi = jac[a:b] * w[:, None]
+        _, L = _serial(w)
+        S = gi.T @ gi
+        for lag in range(1, L + 1):
+            c = gi[lag:].T @ gi[:-lag]
+            S += (1.0 - lag / (L + 1.0)) * (c + c.T)
+        meat += S / (1.0 - rho) ** 2
+    g = jac[~inside] * r[~inside, None]
+    meat += g.T @ g
+    hac = n / (n - p) * (inv @ meat @ inv)
+    if not good.all():
+        ok = np.all(np.abs(vt[~good]) < 1e-8, axis=0)
+        out = np.full((p, p), np.nan)
+        out[np.ix_(ok, ok)] = hac[np.ix_(ok, ok)]
+        hac = out
+    info["method"] = "newey-west, AR(1)-prewhitened per log (Bartlett kernel, Andrews bandwidth)"
+    return hac, info
+
+
 def _intervals(problem: _Problem, theta, cov, n, p) -> dict:
     q = t_ppf(0.975, max(n - p, 1))
     out = {}
@@ -1257,18 +1332,29 @@ def _solve(problem: _Problem, starts: list[dict], *, seed: int, bootstrap: int) 
     row_w = problem.row_weights() if problem.kind == "logs" and len(problem.logs) > 1 else None
     sse_cov = float(np.sum((r / row_w) ** 2)) if row_w is not None else sse
     cov = _covariance(jac, sse_cov, rows, p, row_w) if finite else np.full((p, p), np.nan)
+    serial = None
+    if problem.kind == "logs" and finite:
+        ends = np.cumsum([int(m.sum()) for m in problem.used])
+        cov, serial = _serial_covariance(jac, r, list(zip(np.r_[0, ends[:-1]], ends)), rows, p, cov)
     ci = _intervals(problem, theta, cov, rows, p)
     sse_n = max(sse, np.finfo(float).tiny) / max(n, 1)
     aic = float(n * np.log(sse_n) + 2 * p)
     bic = float(n * np.log(sse_n) + p * np.log(max(n, 1)))
     metrics = _metrics(problem, values)
     metrics.update(aic=aic, bic=bic, n_obs=n, n_params=p, sse_weighted=sse)
+    factor = 1.0
+    if serial is not None:
+        metrics.update(residual_lag1=serial["lag1"], covariance=serial["method"])
+        if serial["method"] != "white":
+            m = np.array([int(u.sum()) for u in problem.used], float)
+            rho = np.asarray(serial["lag1"], float)
+            factor = float(np.sum(m * (1 - rho) / (1 + rho)) / max(m.sum(), 1.0))
     out = FitResult(spec=problem.spec, params=_contract_params(problem.spec, values), ci95=ci, metrics=metrics,
                     residuals=problem.raw_residuals(values), n_obs=n, n_params=p, aic=aic, bic=bic, cov=cov,
                     success=success, param_names=list(problem.names), values=values,
                     fitted=_fitted_frames(problem, values), used=list(problem.used),
                     message=str(res.message), n_starts=n_ok, kind=problem.kind,
-                    at_bound=_at_bound(problem.names, theta, bnds))
+                    at_bound=_at_bound(problem.names, theta, bnds), serial_factor=factor)
     if bootstrap and success:
         out.ci95_bootstrap, out.bootstrap = _bootstrap(problem, values, bootstrap, seed)
     return out
@@ -1290,13 +1376,24 @@ def _at_bound(names, theta, bnds, rel: float = 1e-6) -> dict:
 
 def _bootstrap(problem: _Problem, values: Mapping, n_boot: int, seed: int, progress=None):
     """Residual bootstrap: data* = model + residuals resampled within each log / mode
-    (``progress``: called once per refit, e.g. a progress bar's ``update``)."""
+    (``progress``: called once per refit, e.g. a progress bar's ``update``).  A log whose
+    residuals are serially correlated (:func:`_serial`) is resampled in moving blocks of its
+    Bartlett bandwidth, so the draws keep the correlation (single samples shuffled had made
+    the bootstrap's intervals as narrow as the white-noise Jacobian's on AR(1) 0.9 noise)."""
     rng = np.random.default_rng(seed)
     pred = [p[m] if problem.kind == "logs" else p for p, m in zip(problem.predict(values), problem.used)]
     raw = problem.raw_residuals(values)
+    blocks = [max(1, _serial(rk)[1]) if problem.kind == "logs" else 1 for rk in raw]
+
+    def resample(rk, b):
+        if b <= 1:
+            return rng.choice(rk, size=len(rk), replace=True)
+        starts = rng.integers(0, len(rk) - b + 1, size=-(-len(rk) // b))
+        return np.concatenate([rk[s0:s0 + b] for s0 in starts])[:len(rk)]
+
     draws = []
     for _ in range(n_boot):
-        data = [pk - rng.choice(rk, size=len(rk), replace=True) for pk, rk in zip(pred, raw)]
+        data = [pk - resample(rk, b) for pk, rk, b in zip(pred, raw, blocks)]
         try:
             res, _ = _local_fit(problem, values, data=data)
         except (ValueError, np.linalg.LinAlgError):
