@@ -52,7 +52,10 @@ def handle_errors(fn):
             return fn(*args, **kwargs)
         except BsipipeError as e:
             if verbose:
-                raise
+                # the traceback, and still the contract's exit status (a re-raise had made a
+                # user's error exit 1)
+                import traceback
+                traceback.print_exc(file=sys.stderr)
             click.echo(f"bsipipe {ctx.info_name}: error: {e}", err=True)
             sys.exit(e.exit_code)
         except (KeyboardInterrupt, click.exceptions.Exit, click.ClickException):

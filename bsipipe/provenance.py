@@ -169,18 +169,21 @@ def check_output_folder(out: str | os.PathLike) -> None:
     p = Path(out).absolute()
     if p.exists() and not p.is_dir():
         raise InputError("the output folder is a file", path=p)
-    for parent in p.parents:
+    # the folder itself where it exists (a read-only mount given as -o had run the whole fit
+    # and then failed to write, exit 1), else its nearest existing parent
+    for parent in (p, *p.parents):
         if parent.exists():
+            what = f"cannot write in the output folder {p}" if parent == p else f"cannot make the output folder {p}"
             if not parent.is_dir():
-                raise InputError(f"cannot make the output folder {p}: {parent} is a file", path=parent)
+                raise InputError(f"{what}: {parent} is a file", path=parent)
             if not os.access(parent, os.W_OK | os.X_OK):
-                raise InputError(f"cannot make the output folder {p}: {parent} is not writable", path=parent)
+                raise InputError(f"{what}: {parent} is not writable", path=parent)
             # the permission bits can say yes where the file system says no (/proc, a read-only
             # mount, a full disk): a folder is made there and removed again
             try:
                 os.rmdir(tempfile.mkdtemp(prefix=".bsipipe-probe-", dir=parent))
             except OSError as e:
-                raise InputError(f"cannot make the output folder {p}: {e.strerror or e}", path=parent) from None
+                raise InputError(f"{what}: {e.strerror or e}", path=parent) from None
             return
 
 

@@ -613,3 +613,12 @@ def test_a_tension_test_is_named_as_such(tmp_path):
         r = _invoke("fit-ogden", path, *extra, "-o", out)
         assert r.exit_code == 2 and "tension.csv" in r.output and "looks like a tension test" in r.output, r.output
         assert not out.exists()
+
+
+def test_verbose_shows_the_traceback_and_keeps_the_exit_status(tmp_path):
+    """-v adds the traceback to a user's error; the exit status stays the contract's 2 (a
+    re-raise had made it 1)."""
+    r = CliRunner().invoke(cli, ["-v", "fit-ogden", str(tmp_path / "nope.csv"), "--diameter-mm", "18",
+                                 "--height-mm", "12", "-o", str(tmp_path / "out")])
+    assert r.exit_code == 2, r.output
+    assert "Traceback" in r.output and "nope.csv" in r.output

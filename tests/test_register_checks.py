@@ -551,3 +551,20 @@ def test_ct_localisation_noise_alone_is_not_a_large_fre(tmp_path):
     assert r.exit_code == 0, r.output
     w = next(w for w in res["warnings"] if w["code"] == "large-fre")
     assert w["fre_rms_mm"] > w["limit_mm"] and "three references" in w["message"]
+
+
+def test_a_markers_table_cut_short_mid_row_is_invalid_input(tmp_path):
+    """A markers3d.csv / markers_ct.csv cut mid-row (a copy interrupted): pandas reads the
+    missing fields as empty, and compare had picked another registration frame from a
+    markers_ct.csv cut at 40 % (sigma 1.119 mm for 1.542), exit 0.  Exit 2 naming the file
+    and the line."""
+    _trial(tmp_path)
+    text = (tmp_path / "markers3d.csv").read_text()
+    cut = text[: text.index("\n", len(text) // 2) + 20]
+    (tmp_path / "markers3d.csv").write_text(cut)
+    r, res = _register(tmp_path)
+    assert r.exit_code == 2, r.output
+    assert "cut short" in r.output and "markers3d.csv" in r.output
+    (tmp_path / "markers3d.csv").write_text(text[: text.index("\n", len(text) // 2) + 1])   # whole rows: read
+    r, res = _register(tmp_path)
+    assert r.exit_code == 0, r.output

@@ -10,6 +10,7 @@ earlier run that this one does not write (``outputs``, names or glob patterns) g
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -80,3 +81,26 @@ def test_an_earlier_runs_files_this_run_does_not_write_are_removed(tmp_path):
     (out / "notes.txt").write_text("mine\n")
     _run(out, "second", cards=("mayacam_right.txt", "residuals_right.png"), outputs=pats).commit()
     assert sorted(_contents(out)) == ["fit.json", "mayacam_right.txt", "notes.txt", "residuals_right.png"]
+
+
+def test_an_existing_output_folder_the_file_system_will_not_write_is_refused_first(tmp_path, monkeypatch):
+    """-o naming an existing folder on a read-only mount: the whole fit had run and then
+    failed to write (internal error, exit 1); the folder itself is now tried before any work
+    (its parents had been, for a folder still to make)."""
+    import errno
+    import tempfile
+
+    from bsipipe.errors import InputError
+    from bsipipe.provenance import check_output_folder
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    real = tempfile.mkdtemp
+
+    def mkdtemp(*a, dir=None, **k):
+        if dir is not None and Path(dir) == ro:
+            raise OSError(errno.EROFS, "Read-only file system")
+        return real(*a, dir=dir, **k)
+    monkeypatch.setattr(tempfile, "mkdtemp", mkdtemp)
+    with pytest.raises(InputError, match="cannot write in the output folder.*Read-only file system"):
+        check_output_folder(ro)
+    check_output_folder(tmp_path / "other")           # a writable parent: fine
