@@ -58,7 +58,12 @@ def handle_errors(fn):
                 traceback.print_exc(file=sys.stderr)
             click.echo(f"bsipipe {ctx.info_name}: error: {e}", err=True)
             sys.exit(e.exit_code)
-        except (KeyboardInterrupt, click.exceptions.Exit, click.ClickException):
+        except KeyboardInterrupt:
+            # Ctrl-C: the shell's 128 + SIGINT, not click's "Aborted!" with exit 1, a processing
+            # failure by the contract; nothing half-written is left (results are committed whole)
+            click.echo(f"bsipipe {ctx.info_name}: interrupted", err=True)
+            sys.exit(130)
+        except (click.exceptions.Exit, click.ClickException):
             raise
         except MemoryError:
             click.echo(f"bsipipe {ctx.info_name}: error: out of memory", err=True)
@@ -180,7 +185,7 @@ def calibrate(config, out, **opts) -> None:
               help="A skull-fixed reference marker (repeat; at least three).")
 @click.option("--frame", type=int, help="Registration frame (default: the first with every reference found).")
 @click.option("--scale/--no-scale", default=False, help="Fit a uniform scale as well (default: rigid).")
-@click.option("--loop/--no-loop", default=True, help="Close the loop: effects scale, moving-reference (default on).")
+@click.option("--loop/--no-loop", default=True, help="Close the loop: effects scale, moving-reference, label-swap (default on).")
 @click.option("--perturbation-draws", type=click.IntRange(min=0), default=2000, show_default=True,
               help="Re-fits of the perturbation TRE estimate (0: skip).")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of the perturbation estimate.")

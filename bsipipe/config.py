@@ -46,7 +46,19 @@ class StrictModel(BaseModel):
             ann = cls.model_fields[info.field_name].annotation
             if not _takes_bool(ann):
                 raise ValueError(f"expected {'a number' if _is_numeric(ann) else 'a value of its type'}, not true/false")
+        if v is not None and not isinstance(v, bool) and info.field_name in cls.model_fields and _only_bool(
+                cls.model_fields[info.field_name].annotation):
+            # pydantic's lax mode reads "yes", "on", 1 as true: YAML's loop: "yes" (quoted) or 1
+            raise ValueError(f"expected true or false, not {v!r}")
         return v
+
+
+def _only_bool(annotation) -> bool:
+    """Whether a field's type is ``bool`` (or ``bool | None``: None is let through)."""
+    if annotation is bool:
+        return True
+    args = [a for a in get_args(annotation) if a is not type(None)]
+    return get_origin(annotation) is not Literal and len(args) == 1 and args[0] is bool
 
 
 def _is_numeric(annotation) -> bool:

@@ -25,3 +25,14 @@ def test_a_whole_model_check_names_the_file_without_an_empty_key(tmp_path):
     with pytest.raises(InputError) as e:
         build_config(p)
     assert e.value.key is None and "key ''" not in str(e.value) and "detection.roi" in str(e.value)
+
+
+def test_a_switch_given_other_than_true_or_false_is_refused():
+    """pydantic's lax mode had read loop: "yes" (quoted in YAML) and loop: 1 as true."""
+    from pydantic import ValidationError
+
+    from bsipipe.commands.register import RegisterConfig
+    for v in ("yes", 1, "true"):
+        with pytest.raises(ValidationError, match="expected true or false"):
+            RegisterConfig(references=["R1"], loop=v)
+    assert RegisterConfig(references=["R1"], loop=False).loop is False

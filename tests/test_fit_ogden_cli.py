@@ -622,3 +622,20 @@ def test_verbose_shows_the_traceback_and_keeps_the_exit_status(tmp_path):
                                  "--height-mm", "12", "-o", str(tmp_path / "out")])
     assert r.exit_code == 2, r.output
     assert "Traceback" in r.output and "nope.csv" in r.output
+
+
+def test_an_interrupted_run_exits_130(tmp_path, monkeypatch):
+    """Ctrl-C: exit 130 and one line (click's default had been "Aborted!" with exit 1, a
+    processing failure by the contract), and no result."""
+    from bsipipe.commands import fit_ogden
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(fit_ogden, "run", interrupted)
+    log = tmp_path / "log.csv"
+    frame, _ = synth_compression_log(seed=1)
+    write_bluehill2(frame, log, geometry={"diameter_mm": 18.0, "height_mm": 12.0})
+    r = CliRunner().invoke(cli, ["fit-ogden", str(log), "--diameter-mm", "18", "--height-mm", "12",
+                                 "-o", str(tmp_path / "out")])
+    assert r.exit_code == 130 and "interrupted" in r.output, (r.exit_code, r.output)
+    assert not (tmp_path / "out" / "fit.json").exists()
