@@ -18,6 +18,7 @@ import functools  # noqa: E402
 import logging  # noqa: E402
 import math  # noqa: E402
 import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 import click
 
@@ -126,8 +127,12 @@ def fit_ogden(inputs, out, **opts) -> None:
     obj = click.get_current_context().find_root().obj or {}
     res = command.run(inputs, out=out, progress=sys.stderr.isatty() and not obj.get("quiet", 0), **opts)
     p = res["params"]
-    click.echo(f"{res['model']}: " + ", ".join(f"{k} = {v:.5g}" for k, v in p.items() if isinstance(v, float))
-               + f"; rmse {res['metrics'].get('rmse_n', res['metrics'].get('rmse_pa')):.4g}; wrote {out}/fit.json")
+    # the loop's final model (its Prony terms and effects), as fit.json's loop.final has it
+    model = ((res.get("loop") or {}).get("final") or {}).get("model") or res["model"]
+    prony = "".join(f", g{i + 1} = {t['g']:.3g} at tau{i + 1} = {t['tau_s']:.3g} s"
+                    for i, t in enumerate(p.get("prony") or []))
+    click.echo(f"{model}: " + ", ".join(f"{k} = {v:.5g}" for k, v in p.items() if isinstance(v, float)) + prony
+               + f"; rmse {res['metrics'].get('rmse_n', res['metrics'].get('rmse_pa')):.4g}; wrote {Path(out) / 'fit.json'}")
 
 
 @cli.command("calibrate")
@@ -173,7 +178,7 @@ def calibrate(config, out, **opts) -> None:
         s = res["stereo"]
         click.echo(f"stereo {s['views'][0]}-{s['views'][1]}: baseline {s['baseline_mm']:.3f} mm, "
                    f"rotation {s['rotation_deg']:.3f} deg, RMS {s['rms_px']:.4f} px")
-    click.echo(f"wrote {out}/calibration.json")
+    click.echo(f"wrote {Path(out) / 'calibration.json'}")
 
 
 @cli.command("register")
@@ -198,7 +203,7 @@ def register(ct, xray, references, out, **opts) -> None:
     res = command.run(ct, xray, references, out=out, **opts)
     moved = f"; moved: {', '.join(res['references']['moved'])}" if res["references"]["moved"] else ""
     click.echo(f"register: {res['model']}, frame {res['frame']}, FRE rms {res['fre_rms_mm']:.4f} mm, "
-               f"scale {res['scale']:.6f}{moved}; wrote {out}/registration.json")
+               f"scale {res['scale']:.6f}{moved}; wrote {Path(out) / 'registration.json'}")
 
 
 @cli.command("compare")
@@ -225,7 +230,7 @@ def compare(fe_displacements, mesh, markers, out, **opts) -> None:
 
     res = command.run(fe_displacements, mesh, markers, out=out, **opts)
     click.echo(f"compare: {res['n_markers']} markers, frame {res['frame']}, sigma {res['sigma_mm']:.4f} mm; "
-               f"wrote {out}/compare.json")
+               f"wrote {Path(out) / 'compare.json'}")
 
 
 @cli.command("synth")
@@ -241,7 +246,7 @@ def synth(config, out) -> None:
     c, t = res["counts"], res["timing"]
     click.echo(f"{c['calibration_images']} calibration images, {c['sequence_frames']} sequence frames"
                + (f" ({t['render_ms_per_frame']:.0f} ms/frame to render)" if "render_ms_per_frame" in t else "")
-               + f"; wrote {out}/truth.json and {out}/synth.json")
+               + f"; wrote {Path(out) / 'truth.json'} and {Path(out) / 'synth.json'}")
 
 
 @cli.command("track")
@@ -329,7 +334,7 @@ def track(config, out, **opts) -> None:
                f"(up to x{max(r['scale_smooth'] for r in sc.values()):.3g})" if up else
                ("; stereo check: sd consistent with the ray gaps" if sc else ""))
         click.echo(f"smoothed {len(sm['tracks'])} tracks: median centre sd {raw:.3f} -> {smo:.3f} px{gap}{chk}")
-    click.echo(f"wrote {out}/track.json")
+    click.echo(f"wrote {Path(out) / 'track.json'}")
 
 
 @cli.command("study")
@@ -370,7 +375,7 @@ def export_fe(config, out) -> None:
                   if res["springs"]["lumping"] == "uniform" else
                   f"; {s['n_springs']} springs of {s['in_decks_n_per_mm']['min']:.5g}-{s['in_decks_n_per_mm']['max']:.5g} "
                   "N/mm (tributary areas)")
-               + f"; wrote {out}/manifest.json")
+               + f"; wrote {Path(out) / 'manifest.json'}")
 
 
 #: First threshold of the cyclic garbage collector in a command's process (Python's default: 700).
