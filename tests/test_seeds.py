@@ -70,3 +70,11 @@ def test_a_seed_without_a_number_is_named_by_line(tmp_path, cell, said):
     with pytest.raises(InputError) as e:
         read_seeds(p, ["cam1"])
     assert e.value.line == 3 and str(e.value).endswith(said)
+
+
+def test_latin1_seeds_are_read(tmp_path):
+    """Marker names with accents in a Windows spreadsheet's Latin-1 export."""
+    from bsipipe.io.seeds import read_seeds
+    p = tmp_path / "seeds.csv"
+    p.write_bytes(b"view,marker,x_px,y_px\ncam1,M\xe9,10.5,20.5\n")
+    assert read_seeds(p, ["cam1"])["marker"].tolist() == ["M\u00e9"]

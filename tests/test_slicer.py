@@ -172,3 +172,14 @@ def test_register_exits_2_on_a_bad_ct_file(tmp_path):
     assert r.exit_code == 2
     assert "ct.fcsv" in r.output and "line 3" in r.output and "Traceback" not in r.output
     assert not (tmp_path / "out").exists()
+
+
+def test_a_latin1_markups_file_is_read(tmp_path):
+    """A Windows tool's .fcsv with a micro sign in a description, in Latin-1: it had been
+    refused with Python's raw codec message."""
+    from bsipipe.io.slicer import read_markups
+    p = tmp_path / "l1.fcsv"
+    p.write_bytes(b"# Markups fiducial file version = 4.11\n# CoordinateSystem = LPS\n"
+                  b"# columns = id,x,y,z,ow,ox,oy,oz,vis,sel,lock,label,desc,associatedNodeID\n"
+                  b"vtkMRMLMarkupsFiducialNode_0,1,2,3,0,0,0,1,1,1,0,R1,\xb5 marker,\n")
+    assert read_markups(p).as_dict()["R1"].tolist() == [1.0, 2.0, 3.0]

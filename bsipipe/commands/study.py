@@ -99,6 +99,9 @@ def run(config: str | os.PathLike, *, out: str | os.PathLike | None = None, forc
     echo(f"[study] {', '.join(f'{v} {k}' for k, v in counts.items() if v)}; {wall:.1f} s")
     report = {"config": str(study.path), "out": str(study.out), "jobs": jobs, "wall_s": wall, "counts": counts,
               "stages": [o.to_dict() for o in outcomes],
+              # every JSON result has a warnings list: here the stages that failed
+              "warnings": [{"code": "stage-failed", "message": f"study: {o.name} failed: {o.detail}", "stage": o.name}
+                           for o in outcomes if o.status == "failed"],
               "provenance": provenance(study.as_dict(), [study.path], command="study")}
     if not stages and not trials:   # the summary of the whole study (a partial run leaves it as it was)
         rs = ResultSet(study.out, primary="study.json")

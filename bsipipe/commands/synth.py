@@ -168,7 +168,7 @@ def run(config: str | os.PathLike, out: str | os.PathLike) -> dict:
         result = {"out": str(out), "views": list(twin.arms), "counts": counts, "timing": timing,
                   "files": [f for f in written if Path(f).parts[0] not in _OWNED] + [f"{d}/..." for d in _OWNED
                                                                               if (stage / d).exists()],
-                  "truth": "truth.json", "provenance": prov}
+                  "truth": "truth.json", "warnings": [], "provenance": prov}
         rs.add_json("synth.json", result)
 
         # commit: the previous run stops looking complete first, then everything moves in

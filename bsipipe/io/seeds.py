@@ -64,7 +64,12 @@ def read_seeds(path, views: Sequence[str], frame_shapes: dict | None = None) -> 
         x.attrs["later"] = later
         return x
     try:
-        df = pd.read_csv(path, dtype={"view": str, "marker": str}, sep=_separator(path))
+        try:
+            df = pd.read_csv(path, dtype={"view": str, "marker": str}, sep=_separator(path), encoding="utf-8-sig")
+        except UnicodeDecodeError:
+            # a Windows spreadsheet's export, marker names with accents: Latin-1 (it had been
+            # refused with a raw codec message)
+            df = pd.read_csv(path, dtype={"view": str, "marker": str}, sep=_separator(path), encoding="latin-1")
     except FileNotFoundError:
         raise InputError("file not found", path=path) from None
     except (OSError, ValueError, pd.errors.ParserError, UnicodeDecodeError) as e:

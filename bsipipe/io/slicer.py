@@ -204,12 +204,22 @@ def _split_slicer_csv(row: str) -> list[str]:
 
 
 def _read_text(path) -> str:
+    """The file's text: UTF-8 (a byte-order mark dropped), else Latin-1 (Windows tools'
+    files with a description in an accented word or a micro sign had been refused with a
+    raw codec message)."""
     try:
-        return Path(path).read_text(encoding="utf-8-sig")
+        data = Path(path).read_bytes()
     except FileNotFoundError:
         raise InputError("file not found", path=path) from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise InputError(f"cannot read the file: {e}", path=path) from None
+    except OSError as e:
+        raise InputError(f"cannot read the file: {e.strerror or e}", path=path) from None
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        if b"\x00" in data:
+            raise InputError("not a text file (it holds NUL bytes): expected a Slicer markups or CSV file",
+                             path=path) from None
+        return data.decode("latin-1")
 
 
 def _coordinate_system(value: str, path, line: int | None) -> str:
