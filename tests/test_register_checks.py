@@ -323,7 +323,7 @@ def test_three_references_one_moved_warn_of_a_large_fre(tmp_path):
     assert r.exit_code == 0, r.output
     w = next(w for w in res["warnings"] if w["code"] == "large-fre")
     assert w["fre_rms_mm"] > 0.2 and w["tracking_noise_mm"] == pytest.approx(np.sqrt(3) * NOISE_MM, rel=0.3)
-    assert "three references" in w["message"]
+    assert "three references" in w["message"] and w["fre_rms_mm"] > w["limit_mm"]
 
 
 def test_implanted_marker_without_a_ct_position_stays_a_marker(tmp_path):
@@ -532,7 +532,7 @@ def test_ct_localisation_noise_alone_is_not_a_large_fre(tmp_path):
     """FRE is judged against what the tracking noise and a CT voxel's localisation error (0.5
     mm) can give: CT positions with 0.15 mm of noise per axis registered without a warning
     (against the tracking noise alone every registration of the probe's tracked twins at CT
-    noise 0.1-0.5 mm had been warned); three references one 2 mm off still are."""
+    noise 0.1-0.5 mm had been warned)."""
     rng = np.random.default_rng(4)
 
     def noisy(ct):
@@ -542,15 +542,7 @@ def test_ct_localisation_noise_alone_is_not_a_large_fre(tmp_path):
     r, res = _register(tmp_path)
     assert r.exit_code == 0, r.output
     assert res["fre_rms_mm"] > 10 * res["tracking_noise"]["rms_3d_mm"]      # the old rule's warning
-    assert "large-fre" not in _codes(res)
-
-    def off(ct):
-        ct["R2"] = ct["R2"] + [1.6, 1.0, -0.6]
-    _trial(tmp_path, ct_edit=off)
-    r, res = _register(tmp_path, ("R1", "R2", "R3"))
-    assert r.exit_code == 0, r.output
-    w = next(w for w in res["warnings"] if w["code"] == "large-fre")
-    assert w["fre_rms_mm"] > w["limit_mm"] and "three references" in w["message"]
+    assert "large-fre" not in _codes(res)          # three references one moved still are: below
 
 
 def test_a_markers_table_cut_short_mid_row_is_invalid_input(tmp_path):
