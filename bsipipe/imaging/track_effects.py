@@ -114,7 +114,7 @@ class StereoSpec:
     frame_shift: bool = False        # each view's picture shifted by a common offset per frame
     capture: bool = False            # a view's track held by another spot: re-found along the other view's ray
     frame_steps: bool = False        # with time_offset: the offset steps by whole frames (a view lost frames)
-    rig_mismatch: bool = False       # each marker's rays miss each other by a steady amount (the rig moved)
+    rig_mismatch: bool = False       # the rays miss each other by a steady field over the points (the rig moved)
 
     def describe(self) -> str:
         parts = [n for n, on in (("view-time-offset", self.time_offset and not (self.clock_drift or self.frame_steps)),
@@ -294,7 +294,7 @@ class StereoFit:
 
     @property
     def ray_gap_rms_mm(self) -> float:
-        """RMS of the ray gaps themselves (a steady per-marker gap the model explains included)."""
+        """RMS of the ray gaps themselves (a rig-mismatch field the model explains included)."""
         if not len(self.residuals):
             return float("nan")
         g = self.residuals if self.gap_bias is None else self.residuals + self.gap_bias
@@ -2044,9 +2044,10 @@ EFFECTS = (
            evidence=_occlusion_evidence),
     Effect("rig-mismatch",
            "the views no longer match the calibration (a C-arm moved or turned since it was calibrated, or the "
-           "calibration is another session's): each marker's rays miss each other by a steady amount",
-           "each marker's signed ray gap has its own steady mean, static markers' too, whatever their speed "
-           "(group means of the residual)",
+           "calibration is another session's): the rays miss each other by a steady amount that changes smoothly "
+           "with where the point is",
+           "the markers' mean signed gaps follow their positions, static markers' too, not their velocities "
+           "across the rays (group means of the residual)",
            lambda s: None if s.rig_mismatch else replace(s, rig_mismatch=True), ("rig_mismatch",),
            evidence=_rig_mismatch_evidence),
 )

@@ -1135,24 +1135,30 @@ def _serial(e: np.ndarray) -> tuple[float, int]:
     return rho, int(min(np.ceil(_ANDREWS_BARTLETT * (a * m) ** (1 / 3)), m // 4))
 
 
+def _is_serial(rho: float, bandwidth: int, m: int) -> bool:
+    r"""A log's residuals are serially correlated: lag-1 above :math:`2/\sqrt m` (about the
+    5 % level for white noise) and a bandwidth of a sample or more."""
+    return rho > 2.0 / np.sqrt(max(m, 1)) and bandwidth >= 1
+
+
 def _serial_covariance(jac: np.ndarray, r: np.ndarray, segments: Sequence[tuple[int, int]], n: int, p: int,
                        cov: np.ndarray) -> tuple[np.ndarray, dict]:
-    r"""The covariance with the noise's serial correlation: Newey-West's (Bartlett kernel,
-    Andrews' AR(1) bandwidth per log) :math:`rac{n}{n-p} B^{-1} \hat S B^{-1}`,
-    :math:`B = J^T J`, :math:`\hat S = \sum_l w_l \sum_t g_t g_{t-l}^T`, :math:`g_t = J_t r_t`
+    r"""The covariance with the noise's serial correlation: Newey-West's, AR(1)-prewhitened
+    per log, :math:`\frac{n}{n-p} B^{-1} \hat S B^{-1}`, :math:`B = J^T J`,
+    :math:`\hat S = \sum_{logs} (1-\rho)^{-2} \sum_l w_l \sum_t g_t g_{t-l}^T`,
+    :math:`g_t = J_t (r_t - \rho r_{t-1})` (Bartlett weights :math:`w_l`, Andrews' bandwidth)
     within each log (``segments``: its rows; the rows outside, the contact priors', count
-    alone), where a log's residuals are significantly autocorrelated (lag-1 above
-    :math:`2/\sqrt m`); else ``cov`` as it is.  A load channel low-pass filtered, or sampled
-    faster than its noise changes, has correlated noise: the white-noise covariance had made
-    95 % intervals 4.5 times too narrow (AR(1) 0.9: mu covered in 6 of 29 seeds).  Returns
-    the covariance and what was found per log."""
+    alone), where a log's residuals are significantly autocorrelated (:func:`_is_serial`);
+    else ``cov`` as it is.  A load channel low-pass filtered, or sampled faster than its
+    noise changes, has correlated noise: the white-noise covariance had made 95 % intervals
+    4.5 times too narrow (AR(1) 0.9: mu covered in 6 of 29 seeds).  Returns the covariance
+    and what was found per log."""
     info = {"lag1": [], "bandwidth": [], "method": "white"}
     for a, b in segments:
         rho, L = _serial(r[a:b])
         info["lag1"].append(rho)
         info["bandwidth"].append(L)
-    serial = [rho > 2.0 / np.sqrt(max(b - a, 1)) and L >= 1
-              for (a, b), rho, L in zip(segments, info["lag1"], info["bandwidth"])]
+    serial = [_is_serial(rho, L, b - a) for (a, b), rho, L in zip(segments, info["lag1"], info["bandwidth"])]
     if not any(serial) or n <= p or not np.all(np.isfinite(jac)):
         return cov, info
     _, sv, vt = np.linalg.svd(jac, full_matrices=False)
@@ -1383,7 +1389,10 @@ def _bootstrap(problem: _Problem, values: Mapping, n_boot: int, seed: int, progr
     rng = np.random.default_rng(seed)
     pred = [p[m] if problem.kind == "logs" else p for p, m in zip(problem.predict(values), problem.used)]
     raw = problem.raw_residuals(values)
-    blocks = [max(1, _serial(rk)[1]) if problem.kind == "logs" else 1 for rk in raw]
+    blocks = []
+    for rk in raw:
+        rho, L = _serial(rk) if problem.kind == "logs" else (0.0, 0)
+        blocks.append(L if _is_serial(rho, L, len(rk)) else 1)
 
     def resample(rk, b):
         if b <= 1:
