@@ -70,3 +70,26 @@ def test_white_noise_keeps_the_white_covariance(tmp_path):
     assert res["metrics"]["covariance"] == "white"
     lo, hi = res["ci95"]["mu_pa"]
     assert lo <= 720.0 <= hi
+
+
+def test_a_two_term_law_that_another_basin_fits_as_well_is_warned(tmp_path):
+    """Two-term Ogden (truth 500 Pa / -8, 300 Pa / +4) on one compression log: the probe's
+    seeds had ended in either of two basins (-8 / +4 or -5.5 / +20) with tight intervals, the
+    other basin fitting within the noise, nothing said.  Every global start is now run to
+    convergence and such an optimum, outside the intervals, is an ``another-optimum``
+    warning."""
+    frame, truth = synth_compression_log(mus_pa=(500.0, 300.0), alphas=(-8.0, 4.0), seed=6)
+    log = tmp_path / "log.csv"
+    write_bluehill2(frame, log, geometry={"diameter_mm": 18.0, "height_mm": 12.0})
+    r = CliRunner().invoke(cli, ["fit-ogden", str(log), "--diameter-mm", "18", "--height-mm", "12",
+                                 "--boundary", "frictionless", "--model", "ogden2", "--no-loop", "--bootstrap", "0",
+                                 "-o", str(tmp_path / "out")])
+    assert r.exit_code == 0, r.output
+    res = json.loads((tmp_path / "out" / "fit.json").read_text())
+    w = {w["code"]: w for w in res["warnings"]}
+    alt = w["another-optimum"]["alternatives"][0]
+    print(res["params"], alt)
+    assert alt["delta_sse_over_s2"] < 9.49
+    lo, hi = res["ci95"]["alpha2"]
+    assert not lo <= alt["params"]["alpha2"] <= hi
+    assert abs(alt["params"]["alpha2"] - res["params"]["alpha2"]) > 2.0

@@ -202,6 +202,26 @@ def _check_travel(path, disp, contact_mm: float, geo: dict, given: bool, geo_sou
 
 #: More spikes than this (and than 1 % of the record) is no glitch: the channel is broken or
 #: the column is not a load.
+def _other_optima(final, data, max_strain) -> list[dict]:
+    """``another-optimum``: a law with several Ogden terms that another set of parameters,
+    outside the reported intervals, fits as well within the noise
+    (:func:`~bsipipe.mechanics.fit.other_optima`)."""
+    from ..mechanics.fit import other_optima
+    from ..quality import warning
+    alts = other_optima(data, final, max_strain=max_strain)
+    if not alts:
+        return []
+    a = alts[0]
+    return [warning(
+        "another-optimum",
+        f"fit-ogden: the {final.spec.law} law's parameters are not determined by these logs: "
+        + ", ".join(f"{k} {v:.4g}" for k, v in a["params"].items())
+        + f" fits as well within the noise (its weighted sum of squares {a['delta_sse_over_s2']:.2g} noise variances "
+          "above the best, inside the parameters' joint 95 % region), outside the reported intervals, which "
+          "describe one basin only; another test (speed, mode) or a law with fewer terms would tell them apart",
+        log, alternatives=alts)]
+
+
 MAX_SPIKES = 5
 
 
@@ -1026,6 +1046,8 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
         result["warnings"] += _drift_implausible(final, data)
     if kind == "logs" and "boundary" not in explicit and width is None and final.spec.boundary == "frictionless":
         result["warnings"] += _boundary_undeclared(data)
+    if kind == "logs":
+        result["warnings"] += _other_optima(final, data, cfg.max_strain)
     try:
         _no_modulus(final.params, result["warnings"], paths[0])
     except ProcessingError:

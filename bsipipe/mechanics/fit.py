@@ -135,7 +135,7 @@ import numpy as np
 import pandas as pd
 from scipy import optimize
 
-from ..distributions import t_ppf
+from ..distributions import chi2_isf, t_ppf
 from .hyperelastic import MODES, Law, get_law, ogden_nominal_stress
 from .viscoelastic import QLV, PronyTerms
 
@@ -1476,6 +1476,49 @@ def fit_logs(logs: Sequence[LogData], spec: ForceModelSpec = ForceModelSpec(), *
             alt.append(v)
         starts = starts + alt
     return _solve(problem, starts, seed=seed, bootstrap=bootstrap)
+
+
+def other_optima(logs: Sequence[LogData], result: FitResult, *, max_strain: float | None = None,
+                 level: float = 0.95) -> list[dict]:
+    r"""Other fits of a law with several Ogden terms as good as ``result`` within the noise.
+
+    Every global start of ``result``'s model is run to convergence (the fit itself refines
+    only the best few); an optimum whose weighted sum of squares lies within
+    :math:`\chi^2_k(level)\,s^2` of the best (``k`` the law's parameters: inside their joint
+    confidence region) and whose law parameters fall outside ``result``'s 95 % intervals is
+    returned (``params``, ``delta_sse_over_s2``).  The intervals describe one basin: on a
+    two-term log (truth 500 Pa / -8, 300 Pa / +4) the fit had ended at -5.5 / +20.2 with
+    tight intervals while the truth's basin fitted 0.89 s^2 worse, nothing said."""
+    law = get_law(result.spec.law)
+    names = list(law.param_names)
+    if sum(n.startswith("alpha") for n in names) < 2 or not result.success:
+        return []
+    problem = _LogProblem(logs, result.spec, max_strain)
+    n, p = problem.n_obs, len(problem.pars)
+    best = float(result.metrics.get("sse_weighted", np.nan))
+    if not np.isfinite(best) or n <= p:
+        return []
+    s2 = best / (n - p)
+    limit = chi2_isf(1.0 - level, len(names))
+    out: list[dict] = []
+    for st in problem.global_starts():
+        start = dict(result.values)
+        start.update({k: st[k] for k in names if k in st})
+        try:
+            r, _ = _local_fit(problem, start)
+        except (ValueError, np.linalg.LinAlgError):
+            continue
+        if not np.isfinite(r.cost) or r.status <= 0:
+            continue
+        v = problem.to_values(problem.canonical(r.x))
+        d = (2.0 * r.cost - best) / s2
+        ci = result.ci95
+        if d > limit or all(k in ci and ci[k][0] <= v[k] <= ci[k][1] for k in names):
+            continue
+        if any(all(abs(v[k] - o["params"][k]) <= 1e-3 * max(1.0, abs(o["params"][k])) for k in names) for o in out):
+            continue
+        out.append({"params": {k: float(v[k]) for k in names}, "delta_sse_over_s2": float(max(d, 0.0))})
+    return sorted(out, key=lambda o: o["delta_sse_over_s2"])
 
 
 class TooFewRows(ValueError):
