@@ -1486,8 +1486,13 @@ def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, 
             + ", ".join(f"{m} {b:+.3g}" for m, b in worst)
             + f" mm, against {scatter:.2g} mm of ray-gap scatter about it): the views no longer match the "
               "calibration (a C-arm moved or turned since it was calibrated, or the calibration is another "
-              "session's). The 3-D points carry an error of at least this size, along as well as across the "
-              "rays, that their sds do not show: calibrate again with the C-arms as they stood for this trial",
+              "session's"
+            + ("; or, with the loop's frame-shift, the mean of a view's jolts, which shifts its picture as a whole"
+               if fit.spec.frame_shift else "")
+            + "). The 3-D points carry an error that their sds do not show, across the rays at least this size "
+              "and along them, where the gaps cannot see it, possibly many times more (cam2 turned 0.3 degrees "
+              "about its own centre: gaps 0.039 mm, points 3.3 mm off): calibrate again with the C-arms as they "
+              "stood for this trial",
             log, rms_bias_mm=mis["rms_bias_mm"], bias_mm=mis["bias_mm"], ray_gap_scatter_mm=scatter))
     points3d = fit.points.copy()
     if time_unit == "frame":

@@ -1943,9 +1943,9 @@ def _rig_mismatch_evidence(before, after) -> dict | None:
     references' included.  On the M markers' mean gaps: the clock alone (one parameter)
     against the clock and the linear field (five), an F test whose error is the means'
     scatter about the richer model (so a marker's own steady bias, a speck beside it,
-    counts as noise, as it should), as :math:`\chi^2_4` of equal tail probability minus
-    :math:`4 \ln M`.  Over a steady ramp either model fits the gaps; this is what tells
-    them apart."""
+    counts as noise, as it should), as :math:`\chi^2_4` of equal tail probability, shifted so
+    that the loop's threshold of 10 falls at p = :data:`RIG_MISMATCH_P`.  Over a steady ramp
+    either model fits the gaps; this is what tells them apart."""
     from ..distributions import chi2_isf, f_sf
     rig = after.fit.rig
     if rig is None:
@@ -1975,25 +1975,37 @@ def _rig_mismatch_evidence(before, after) -> dict | None:
     F = ((rss[0] - rss[1]) / 4.0) / (rss[1] / dof2)
     p = f_sf(max(F, 0.0), 4, dof2)
     chi2 = chi2_isf(max(p, 1e-300), 4)
-    return {"delta_bic": float(chi2 - 4 * math.log(m)), "f": float(F), "p": float(p), "dof": [4, dof2],
-            "n_markers": m,
+    # on the loop's scale, with its threshold of 10 at p = RIG_MISMATCH_P: passing evidence
+    # ranks the effect first, so the clock is then judged about the field (cam2 turned 0.3
+    # degrees with a true 1 s offset: the offset kept first had ended 14 % off)
+    return {"delta_bic": float(chi2 - chi2_isf(RIG_MISMATCH_P, 4) + 10.0), "f": float(F), "p": float(p),
+            "dof": [4, dof2], "n_markers": m,
             "test": "the markers' mean ray gaps: a clock alone (time offset x mean velocity across the rays) against "
                     "the clock and a linear field over their positions, F test on the means' scatter, as chi-square "
-                    "of equal tail probability minus 4 ln M"}
+                    f"of equal tail probability on the loop's scale (10 at p = {RIG_MISMATCH_P:g})"}
+
+
+#: ``rig-mismatch`` is turned down unless its F test (:func:`_rig_mismatch_evidence`) has p
+#: below this.  The test has only M - 5 degrees of freedom for its error (6 with the twin's 11
+#: markers): its delta BIC, which needs F > 26 there, had turned down cam2 turned 0.3 degrees
+#: (F 10.9), 0.2 degrees about x (17.5), its principal point 10 px off (13.9) and, with a
+#: true 1 s offset, the 0.3 degrees (F 8.0, the offset then 25 % off).  Twelve twins with
+#: their true cameras had F 0.15-5.1 (p 0.04 and above).
+RIG_MISMATCH_P = 0.02
 
 
 def _rig_mismatch_veto(before, after) -> str | None:
-    """``rig-mismatch`` is kept on its outside evidence only (:func:`_rig_mismatch_evidence`):
-    a marker's own steady bias (a speck, its rendering) is correlated over hundreds of frames,
-    so the fit's delta BIC, counting them as independent, takes any such biases for a field
-    (a twin with a true 1 s offset and its true calibration: delta BIC 95, the offset then
-    pulled to 0.91 s)."""
+    """``rig-mismatch`` is kept only where its outside evidence says so
+    (:func:`_rig_mismatch_evidence`, p below :data:`RIG_MISMATCH_P`): a marker's own steady
+    bias (a speck, its rendering) is correlated over hundreds of frames, so the fit's delta
+    BIC, counting them as independent, takes any such biases for a field (a twin with a true
+    1 s offset and its true calibration: delta BIC 95, the offset then pulled to 0.91 s)."""
     if not after.spec.rig_mismatch or before.spec.rig_mismatch:
         return None
     ev = _rig_mismatch_evidence(before, after)
     if ev is None:
         return "too few markers (8 at least) to tell a rig's field from the markers' own steady biases"
-    if ev["delta_bic"] <= 10.0:
+    if ev["p"] >= RIG_MISMATCH_P:
         return (f"the markers' mean gaps need no field beyond a clock (F {ev['f']:.3g}, p {ev['p']:.3g}): their "
                 "steady gaps are the markers' own biases")
     return None

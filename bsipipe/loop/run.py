@@ -17,9 +17,9 @@ Selection rule (:class:`SelectionRule`, defaults):
   fit reports one, else the Gaussian :math:`n \ln(\mathrm{RSS}/n) + k \ln n`.  For one extra
   parameter in 5,000 white-noise samples this is a likelihood-ratio test at
   :math:`p \approx 2 \times 10^{-5}`.
-  Where the stage's fit reports a ``serial_factor`` below 1 (fit-ogden: the richer model's
-  residual serially correlated, :math:`(1-\rho)/(1+\rho)` of its lag-1 autocorrelation), the
-  BIC is taken on that share of the samples (:math:`n_{eff}`), for both models.
+  Where the stage's richer fit has a ``serial_data_term`` (fit-ogden: a log's residual
+  serially correlated, each log's samples counted as :math:`(1-\rho)/(1+\rho)` of them), the
+  BIC is taken on the effective samples, for both models.
 - **Practical significance.**  The fitted RMSE must also drop by more than
   ``rmse_gain_min`` (5 %): the part of the error the effect removes,
   :math:`\sqrt{\mathrm{RMSE}_{before}^2 - \mathrm{RMSE}_{after}^2}`, is then about a third or more of
@@ -287,16 +287,17 @@ def _weigh(effect: Effect, before: LoopState, after: LoopState, rule: SelectionR
     if getattr(after.fit, "success", True) is False:
         ev.update(passes=False, criterion="fit", reason="the augmented fit did not converge")
         return ev
-    f = float(getattr(after.fit, "serial_factor", 1.0) or 1.0)
-    if f < 1.0:
+    hook = getattr(after.fit, "serial_data_term", None)
+    term = hook(before.fit) if callable(hook) else None
+    if term is not None:
         # serially correlated noise (the richer model's residual still correlated): the
-        # Gaussian BIC on n_eff = f n samples, n_eff = n (1 - rho) / (1 + rho); counted as
+        # Gaussian BIC on each series' effective samples, n (1 - rho) / (1 + rho); counted as
         # independent, AR(1) 0.9 load noise had had drift, compliance or a contact offset
         # kept on 6 of 16 elastic logs
+        data, n_eff = term
         dp = after.n_params - before.n_params
-        n = max(after.n_obs, 2)
-        ev.update(delta_bic_white=ev["delta_bic"], serial_factor=f,
-                  delta_bic=f * (ev["delta_bic"] + dp * np.log(n)) - dp * np.log(max(f * n, 2.0)))
+        ev.update(delta_bic_white=ev["delta_bic"], n_effective=n_eff,
+                  delta_bic=data - dp * np.log(max(n_eff, 2.0)))
     outside = effect.evidence(before, after) if effect.evidence is not None else None
     if outside is not None:
         ev["outside"] = outside

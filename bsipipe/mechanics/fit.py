@@ -331,10 +331,32 @@ class FitResult:
     n_starts: int = 0
     kind: str = "logs"                                   # "logs" | "tables"
     at_bound: dict = field(default_factory=dict)         # flat name -> "lower" | "upper": ended on its range's edge
-    #: the effective share of independent samples, (1 - rho) / (1 + rho) of the residual's
-    #: lag-1 autocorrelation (samples-weighted over the logs) where it is significant, else 1:
-    #: the loop weighs an effect's delta BIC on that many samples (:func:`bsipipe.loop.run_loop`)
-    serial_factor: float = 1.0
+    #: per log, the effective share of independent samples, (1 - rho) / (1 + rho) of its
+    #: residual's lag-1 autocorrelation where that is significant, else 1
+    #: (:meth:`serial_data_term`: the loop weighs an effect's evidence on them)
+    serial_factors: list = field(default_factory=list)
+    log_weights: list = field(default_factory=list)      # the logs' balancing weights
+
+    def serial_data_term(self, before: "FitResult") -> tuple[float, float] | None:
+        r"""The loop's data term of an effect's delta BIC on the effective samples, this fit
+        the richer one: :math:`n \ln(1 + \sum_i f_i \Delta\mathrm{SSE}_i / \mathrm{SSE})`
+        (:math:`f_i` each log's :attr:`serial_factors`, :math:`\Delta\mathrm{SSE}_i` the
+        fall of its weighted sum of squares; with every :math:`f_i = 1` this is
+        :math:`n \ln(\mathrm{SSE}_{before}/\mathrm{SSE}_{after})`), and the effective number
+        of samples :math:`\sum_i f_i m_i`; None where every log is white.  Per log: one log of
+        three with correlated noise had had a pooled factor of 0.5-0.7 against its own 0.03,
+        and a false drift kept in 3 of 10 seeds."""
+        f = np.asarray(self.serial_factors, float)
+        if self.kind != "logs" or not len(f) or np.all(f >= 1.0) or len(before.residuals) != len(self.residuals):
+            return None
+        w2 = np.asarray(self.log_weights, float) ** 2
+        sse_a = np.array([w * float(np.dot(r, r)) for w, r in zip(w2, self.residuals)])
+        sse_b = np.array([w * float(np.dot(r, r)) for w, r in zip(w2, before.residuals)])
+        if sse_a.sum() <= 0:
+            return None
+        x = 1.0 + float(np.sum(f * (sse_b - sse_a))) / float(sse_a.sum())
+        m = np.array([len(r) for r in self.residuals], float)
+        return float(self.n_obs * np.log(max(x, 1e-300))), float(np.sum(f * m))
 
     @property
     def declared_params(self) -> list[str]:
@@ -1348,19 +1370,18 @@ def _solve(problem: _Problem, starts: list[dict], *, seed: int, bootstrap: int) 
     bic = float(n * np.log(sse_n) + p * np.log(max(n, 1)))
     metrics = _metrics(problem, values)
     metrics.update(aic=aic, bic=bic, n_obs=n, n_params=p, sse_weighted=sse)
-    factor = 1.0
+    factors: list[float] = []
     if serial is not None:
         metrics.update(residual_lag1=serial["lag1"], covariance=serial["method"])
-        if serial["method"] != "white":
-            m = np.array([int(u.sum()) for u in problem.used], float)
-            rho = np.asarray(serial["lag1"], float)
-            factor = float(np.sum(m * (1 - rho) / (1 + rho)) / max(m.sum(), 1.0))
+        factors = [(1.0 - rho) / (1.0 + rho) if _is_serial(rho, L, int(u.sum())) else 1.0
+                   for rho, L, u in zip(serial["lag1"], serial["bandwidth"], problem.used)]
     out = FitResult(spec=problem.spec, params=_contract_params(problem.spec, values), ci95=ci, metrics=metrics,
                     residuals=problem.raw_residuals(values), n_obs=n, n_params=p, aic=aic, bic=bic, cov=cov,
                     success=success, param_names=list(problem.names), values=values,
                     fitted=_fitted_frames(problem, values), used=list(problem.used),
                     message=str(res.message), n_starts=n_ok, kind=problem.kind,
-                    at_bound=_at_bound(problem.names, theta, bnds), serial_factor=factor)
+                    at_bound=_at_bound(problem.names, theta, bnds), serial_factors=factors,
+                    log_weights=[float(w) for w in getattr(problem, "weights", [])])
     if bootstrap and success:
         out.ci95_bootstrap, out.bootstrap = _bootstrap(problem, values, bootstrap, seed)
     return out
