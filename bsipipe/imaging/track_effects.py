@@ -2011,12 +2011,17 @@ def _rig_mismatch_veto(before, after) -> str | None:
     return None
 
 
+def _switch(name: str):
+    """An effect's ``apply``: the spec with its switch ``name`` on (None where it already is)."""
+    return lambda s: None if getattr(s, name) else replace(s, **{name: True})
+
+
 EFFECTS = (
     Effect("view-time-offset",
            "the two C-arms are not synchronised: view B's frames are taken a fixed time after (or before) A's",
            "the signed ray gap grows with the marker's velocity across the rays (covariate v_perp_mm_s): "
            "correlation test and runs of the residual",
-           lambda s: None if s.time_offset else replace(s, time_offset=True), ("view_time_offset_s",)),
+           _switch("time_offset"), ("view_time_offset_s",)),
     Effect("view-clock-drift",
            "the two C-arms' frame clocks run at slightly different rates: the time between the views' frames "
            "grows (or shrinks) through the sequence",
@@ -2037,22 +2042,22 @@ EFFECTS = (
            "shifted by a common offset the other view does not see",
            "the gaps of a frame's markers move together, frame to frame; the markers' 2-D departures from their "
            "smooth tracks share an offset per frame",
-           lambda s: None if s.frame_shift else replace(s, frame_shift=True), ("frame_shifts",),
+           _switch("frame_shift"), ("frame_shifts",),
            evidence=_frame_shift_evidence),
     Effect("identity-swap",
            "two markers' names were exchanged in one view (they passed close and the tracker swapped them)",
            "two markers' gaps jump to many times the noise for a run of frames (group means, runs test)",
-           lambda s: None if s.swaps else replace(s, swaps=True), ("identity_swaps",)),
+           _switch("swaps"), ("identity_swaps",)),
     Effect("track-capture",
            "a marker's track in one view was held by something else in its search window (a static spot: dust "
            "or a defect of the intensifier, another object) while the marker moved away",
            "one marker's gaps grow far beyond the noise for a run of frames (group means, runs test); the "
            "marker is found again along the other view's ray",
-           lambda s: None if s.capture else replace(s, capture=True), ("track_captures",)),
+           _switch("capture"), ("track_captures",)),
     Effect("occlusion",
            "a marker partly hidden by an instrument is measured off centre at the frames next to its loss",
            "outlying gaps at the frames the tracker flagged (next to a loss, amplitude drop)",
-           lambda s: None if s.occlusion else replace(s, occlusion=True), ("excluded_partly_hidden",),
+           _switch("occlusion"), ("excluded_partly_hidden",),
            evidence=_occlusion_evidence),
     Effect("rig-mismatch",
            "the views no longer match the calibration (a C-arm moved or turned since it was calibrated, or the "
@@ -2060,7 +2065,7 @@ EFFECTS = (
            "with where the point is",
            "the markers' mean signed gaps follow their positions, static markers' too, not their velocities "
            "across the rays (group means of the residual)",
-           lambda s: None if s.rig_mismatch else replace(s, rig_mismatch=True), ("rig_mismatch",),
+           _switch("rig_mismatch"), ("rig_mismatch",),
            evidence=_rig_mismatch_evidence),
 )
 
