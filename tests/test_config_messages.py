@@ -36,3 +36,20 @@ def test_a_switch_given_other_than_true_or_false_is_refused():
         with pytest.raises(ValidationError, match="expected true or false"):
             RegisterConfig(references=["R1"], loop=v)
     assert RegisterConfig(references=["R1"], loop=False).loop is False
+
+
+def test_a_per_log_count_from_the_config_names_the_config(tmp_path):
+    """Two contacts in the config for one log: the error names the config file and the key
+    (it had named the log)."""
+    from click.testing import CliRunner
+
+    from bsipipe.cli import cli
+    from bsipipe.synth.machine_log import synth_compression_log, write_bluehill2
+    frame, _ = synth_compression_log(seed=1)
+    log = tmp_path / "log.csv"
+    write_bluehill2(frame, log, geometry={"diameter_mm": 18.0, "height_mm": 12.0})
+    cfg = tmp_path / "fit.yaml"
+    cfg.write_text("diameter_mm: 18\nheight_mm: 12\ncontact_mm: [0.5, 0.6]\n")
+    r = CliRunner().invoke(cli, ["fit-ogden", str(log), "--config", str(cfg), "-o", str(tmp_path / "out")])
+    assert r.exit_code == 2, r.output
+    assert "fit.yaml" in r.output and "contact_mm" in r.output

@@ -978,6 +978,14 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
             spec0 = ForceModelSpec(law=cfg.model, prony=cfg.prony, boundary=cfg.boundary)
         except ValueError as e:
             raise InputError(str(e), path=config) from None
+        given = {"contact_mm": contact_mm, "diameter_mm": diameter_mm, "height_mm": height_mm}
+        for key in PER_LOG:
+            try:
+                _per_log(cfg, key, paths)
+            except InputError as e:
+                # a count the config gives names the config (it had named the first log)
+                raise InputError(e.message, path=paths[0] if given[key] is not None or config is None else config,
+                                 key=key) from None
         data, input_info = _read_logs(paths, cfg)
         kind = "logs"
     width = _read_width(width_csv) if width_csv is not None else None
