@@ -249,8 +249,8 @@ class ResultSet:
     def _stale(self) -> list[Path]:
         """The files in ``out`` an earlier run wrote (``outputs``) that this run does not."""
         out = []
-        for pat in self.outputs:
-            for p in (self.out.glob(pat) if any(c in pat for c in "*?[") else [self.out / pat]):
+        for pat in self.outputs:                     # a plain name globs to itself
+            for p in self.out.glob(pat):
                 if p.is_file() and p.relative_to(self.out).as_posix() not in self.files:
                     out.append(p)
         return out
@@ -260,27 +260,20 @@ class ResultSet:
         names = sorted(self.files, key=lambda n: (n == self.primary, n))
         staged: list[tuple[str, Path]] = []
         try:
-            for n in names:
+            for n in names:                           # every file in full first ...
                 staged.append((n, write_temporary(self.out / n, self.files[n])))
+            if self.primary is not None:              # ... then the earlier run's primary goes
+                (self.out / self.primary).unlink(missing_ok=True)
+            for p in self._stale():
+                p.unlink()
+            for n, tmp in staged:
+                os.replace(tmp, self.out / n)
         except BaseException:
-            for _, tmp in staged:
+            for _, tmp in staged:                     # a renamed one is gone already
                 tmp.unlink(missing_ok=True)
             raise
         finally:
             for f in self.files.values():
                 if hasattr(f, "close"):
                     f.close()
-        try:
-            if self.primary is not None:
-                (self.out / self.primary).unlink(missing_ok=True)
-            for p in self._stale():
-                p.unlink()
-            written = []
-            for n, tmp in staged:
-                os.replace(tmp, self.out / n)
-                written.append(self.out / n)
-        except BaseException:
-            for _, tmp in staged:
-                tmp.unlink(missing_ok=True)
-            raise
-        return written
+        return [self.out / n for n in names]

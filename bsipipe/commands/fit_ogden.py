@@ -257,14 +257,16 @@ def _other_optima(final, data, max_strain) -> list[dict]:
 MAX_SPIKES = 5
 
 
-def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig):
+def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig, per_log: dict[str, list]):
+    """The logs and their inputs records; ``per_log``: each :data:`PER_LOG` key's value per
+    log (:func:`_per_log`)."""
     from ..io.machine_log import read_machine_log
     from ..mechanics.contact import ContactNotInRecord, NoLoadingRamp, detect_contact, loading_ramps
     from ..mechanics.fit import MIN_UNLOADED_SAMPLES, LogData
 
     logs, inputs = [], []
-    dims = {k: _per_log(cfg, k, paths) for k in ("diameter_mm", "height_mm")}
-    for i, (p, given) in enumerate(zip(paths, _per_log(cfg, "contact_mm", paths))):
+    dims = {k: per_log[k] for k in ("diameter_mm", "height_mm")}
+    for i, (p, given) in enumerate(zip(paths, per_log["contact_mm"])):
         ml = read_machine_log(p)
         geo, geo_source, geo_disagree = _geometry(str(p), {k: v[i] for k, v in dims.items()}, ml)
         disp, force = ml.compression()
@@ -979,14 +981,15 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
         except ValueError as e:
             raise InputError(str(e), path=config) from None
         given = {"contact_mm": contact_mm, "diameter_mm": diameter_mm, "height_mm": height_mm}
+        per_log = {}
         for key in PER_LOG:
             try:
-                _per_log(cfg, key, paths)
+                per_log[key] = _per_log(cfg, key, paths)
             except InputError as e:
                 # a count the config gives names the config (it had named the first log)
                 raise InputError(e.message, path=paths[0] if given[key] is not None or config is None else config,
                                  key=key) from None
-        data, input_info = _read_logs(paths, cfg)
+        data, input_info = _read_logs(paths, cfg, per_log)
         kind = "logs"
     width = _read_width(width_csv) if width_csv is not None else None
 

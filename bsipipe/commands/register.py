@@ -266,19 +266,21 @@ def choose_frame(tracks: pd.DataFrame, references: Sequence[str], frame: int | N
 RAW_COLUMNS = ("x_mm_raw", "y_mm_raw", "z_mm_raw")
 
 
-def _tracks_array(tracks: pd.DataFrame, names: Sequence[str],
-                  columns: Sequence[str] = ("x_mm", "y_mm", "z_mm")) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(frames (F,), time_s (F,), positions (F, len(names), 3)) with NaN where missing;
-    ``columns``: the three position columns to read."""
+def _tracks_array(tracks: pd.DataFrame, names: Sequence[str], *column_sets: Sequence[str]) -> tuple:
+    """``(frames (F,), time_s (F,), positions (F, len(names), 3), ...)`` with NaN where
+    missing: one positions array for each of ``column_sets`` (three position columns each;
+    default ``x_mm, y_mm, z_mm``)."""
     frames = np.array(sorted(tracks["frame"].unique()), dtype=np.int64)
-    pos = np.full((len(frames), len(names), 3), np.nan)
-    fidx = {f: i for i, f in enumerate(frames)}
     sub = tracks[tracks["marker"].isin(list(names))]
-    col = {n: j for j, n in enumerate(names)}
-    for f, m, x, y, z in sub[["frame", "marker", *columns]].itertuples(index=False):
-        pos[fidx[f], col[m]] = (x, y, z)
+    fi = np.searchsorted(frames, sub["frame"].to_numpy(np.int64))
+    mi = sub["marker"].map({n: j for j, n in enumerate(names)}).to_numpy(np.int64)
+    out = []
+    for cols in column_sets or (("x_mm", "y_mm", "z_mm"),):
+        pos = np.full((len(frames), len(names), 3), np.nan)
+        pos[fi, mi] = sub[list(cols)].to_numpy(float)
+        out.append(pos)
     time = tracks.groupby("frame")["time_s"].first().reindex(frames).to_numpy(float)
-    return frames, time, pos
+    return (frames, time, *out)
 
 
 def markers_to_ct(tracks: pd.DataFrame, T, frame: int, roles: dict[str, str],
@@ -641,14 +643,15 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
     if missing:
         warnings.append(warning("references-missing", "register: references missing: " + "; ".join(
             f"{r}: {w}" for r, w in missing.items()), log, references=dict(missing)))
-    frames, time, pos = _tracks_array(tracks, found)
     # the frame-to-frame statistics (the tracking noise, the motion test) read the raw 3-D
     # points where the file has them: smoothed points wander slowly, not frame by frame, so a
     # noise taken from their scatter is several times too small and any wander is "motion"
     # (a static reference of the clean twin, 0.013 mm of wander within its stated sd, had
     # been dropped as moved, delta BIC 2917, in 6 of 13 tracked twins)
     raw = all(c in tracks.columns for c in RAW_COLUMNS) and tracks[list(RAW_COLUMNS)].notna().any().all()
-    pos_stat = _tracks_array(tracks, found, RAW_COLUMNS)[2] if raw else pos
+    frames, time, pos, *pos_raw = _tracks_array(tracks, found, ("x_mm", "y_mm", "z_mm"),
+                                                *([RAW_COLUMNS] if raw else []))
+    pos_stat = pos_raw[0] if raw else pos
     fi = int(np.flatnonzero(frames == F)[0])
     if cfg.frame is None and len(found) < len(in_ct):
         warnings.append(warning("no-frame-with-all-references",

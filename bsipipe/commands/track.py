@@ -1166,15 +1166,9 @@ INCOMPLETE = 0.9
 
 def _runs(frames) -> str:
     """``0-17, 20, 31-33``: the frame numbers ``frames`` (sorted) as runs."""
-    out, fr = [], [int(f) for f in frames]
-    k = 0
-    while k < len(fr):
-        e = k
-        while e + 1 < len(fr) and fr[e + 1] == fr[e] + 1:
-            e += 1
-        out.append(str(fr[k]) if e == k else f"{fr[k]}-{fr[e]}")
-        k = e + 1
-    return ", ".join(out)
+    fr = np.asarray(frames, np.int64)
+    runs = np.split(fr, np.flatnonzero(np.diff(fr) != 1) + 1) if len(fr) else []
+    return ", ".join(str(r[0]) if len(r) == 1 else f"{r[0]}-{r[-1]}" for r in runs)
 
 
 def _tracks_incomplete(table: pd.DataFrame) -> list[dict]:

@@ -1058,6 +1058,12 @@ def _swept_result(view, markers, recs, back, times, events, settings, S, fov_inf
     return TrackResult(table, out_events, fov_info, {**settings.__dict__, **S})
 
 
+def true_runs(ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """First and one-past-last index of each run of consecutive True in ``ok`` (1-D)."""
+    e = np.flatnonzero(np.diff(np.r_[0, np.asarray(ok).astype(np.int8), 0]))
+    return e[::2], e[1::2]
+
+
 def _gap_events(table: pd.DataFrame, events: list[dict], view: str) -> list[dict]:
     """``events`` with a ``lost`` / ``refound`` pair for every run of ``lost`` rows of an
     automatic track that has none (a track followed back past a gap reports nothing on its
@@ -1087,23 +1093,15 @@ def _gap_events(table: pd.DataFrame, events: list[dict], view: str) -> list[dict
                           "frames_before": int(a),
                           "detail": f"first found in frame {int(fr[a])}, not in the {a} frame(s) before it (hidden, "
                                     "outside the field or too faint)"})
-        gap = (st == "lost")
-        k = a
-        while k <= b:
-            if not gap[k]:
-                k += 1
-                continue
-            e = k
-            while e <= b and gap[e]:
-                e += 1
-            f0, f1 = int(fr[k]), int(fr[e])      # e <= b: the run ends before a found row
+        # the runs of lost rows between the first and the last found row (each ends before one)
+        for k, e in zip(*(i + a for i in true_runs(st[a:b + 1] == "lost"))):
+            f0, f1 = int(fr[k]), int(fr[e])
             if not any(f0 <= x < f1 for x in lost_at.get(m, ())):
                 added.append({"view": view, "frame": f0, "marker": m, "kind": "lost",
                               "detail": "not found; followed across the gap"})
                 if (m, f1, "refound") not in have:
                     added.append({"view": view, "frame": f1, "marker": m, "kind": "refound", "gap_frames": int(e - k),
                                   "detail": f"found again after {e - k} frame(s)"})
-            k = e
         if b < len(fr) - 1 and not any(x > int(fr[b]) for x in lost_at.get(m, ())):
             added.append({"view": view, "frame": int(fr[b + 1]), "marker": m, "kind": "lost",
                           "detail": "not found again to the end of the sequence"})

@@ -98,6 +98,7 @@ import numpy as np
 import pandas as pd
 
 from ..loop import Effect, LoopReport, run_loop
+from .track import true_runs as _runs
 from .triangulate import ViewGeometry, _triangulate, closest_point_on_ray
 
 log = logging.getLogger(__name__)
@@ -304,12 +305,6 @@ class StereoFit:
     def reproj_rms_px(self) -> float:
         p = self.points[self.points["n_views"] == 2]
         return float(np.sqrt(np.mean(p["reproj_err_px"] ** 2))) if len(p) else float("nan")
-
-
-def _runs(ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """First and one-past-last index of each run of consecutive True in ``ok`` (1-D)."""
-    e = np.flatnonzero(np.diff(np.r_[0, ok.astype(np.int8), 0]))
-    return e[::2], e[1::2]
 
 
 def _pchip_slopes(h: np.ndarray, m: np.ndarray, first: np.ndarray, last: np.ndarray, two: np.ndarray) -> np.ndarray:
@@ -1953,11 +1948,11 @@ def _rig_mismatch_evidence(before, after) -> dict | None:
     bf = before.fit
     n = rig["n"]
     M = len(n)
-    v = np.bincount(bf.groups, weights=bf.covariates["v_perp_mm_s"], minlength=M) / np.maximum(
-        np.bincount(bf.groups, minlength=M), 1)
-    b = np.bincount(bf.groups, weights=bf.residuals, minlength=M) / np.maximum(np.bincount(bf.groups, minlength=M), 1)
+    nb = np.bincount(bf.groups, minlength=M)
+    v = np.bincount(bf.groups, weights=bf.covariates["v_perp_mm_s"], minlength=M) / np.maximum(nb, 1)
+    b = np.bincount(bf.groups, weights=bf.residuals, minlength=M) / np.maximum(nb, 1)
     pos = rig["mean_pos"]
-    ok = (n >= 2) & np.isfinite(pos).all(axis=1) & (np.bincount(bf.groups, minlength=M) >= 2)
+    ok = (n >= 2) & np.isfinite(pos).all(axis=1) & (nb >= 2)
     m = int(ok.sum())
     if m < 8:
         return None

@@ -1125,20 +1125,30 @@ def _covariance(jac: np.ndarray, sse: float, n: int, p: int, row_weights: np.nda
     """
     if n <= p:
         return np.full((p, p), np.nan)
-    s2 = sse / (n - p)
+    meat = None
+    if row_weights is not None:
+        jw = jac * np.asarray(row_weights, dtype=float)[:, None]
+        meat = jw.T @ jw
+    return _sandwich(jac, sse / (n - p), meat)
+
+
+def _sandwich(jac: np.ndarray, scale: float, meat: np.ndarray | None = None) -> np.ndarray:
+    """``scale (J^T J)^{-1}``, or with ``meat`` ``scale (J^T J)^{-1} meat (J^T J)^{-1}``
+    (pseudo-inverse by SVD); NaN in the rows and columns of parameters the null space of
+    ``J`` touches."""
+    p = jac.shape[1]
     _, sv, vt = np.linalg.svd(jac, full_matrices=False)
     tol = np.finfo(float).eps * max(jac.shape) * (sv[0] if len(sv) else 0.0)
     good = sv > tol
     inv = (vt[good].T / sv[good] ** 2) @ vt[good]
-    if row_weights is not None:
-        jw = jac * np.asarray(row_weights, dtype=float)[:, None]
-        inv = inv @ (jw.T @ jw) @ inv
+    if meat is not None:
+        inv = inv @ meat @ inv
     if not good.all():
         cov = np.full((p, p), np.nan)
         ok = np.all(np.abs(vt[~good]) < 1e-8, axis=0)     # directions untouched by the null space
-        cov[np.ix_(ok, ok)] = s2 * inv[np.ix_(ok, ok)]
+        cov[np.ix_(ok, ok)] = scale * inv[np.ix_(ok, ok)]
         return cov
-    return s2 * inv
+    return scale * inv
 
 
 #: Andrews' (1991) AR(1) plug-in bandwidth constant for the Bartlett kernel.
@@ -1163,33 +1173,29 @@ def _is_serial(rho: float, bandwidth: int, m: int) -> bool:
     return rho > 2.0 / np.sqrt(max(m, 1)) and bandwidth >= 1
 
 
+def _serial_logs(r: np.ndarray, segments: Sequence[tuple[int, int]]) -> dict:
+    """Per log (``segments``: its rows of the residual ``r``): the lag-1 autocorrelation, the
+    Bartlett bandwidth (:func:`_serial`) and whether it is serially correlated
+    (:func:`_is_serial`)."""
+    lag, bw = zip(*(_serial(r[a:b]) for a, b in segments)) if len(segments) else ((), ())
+    return {"lag1": list(lag), "bandwidth": list(bw),
+            "serial": [_is_serial(rho, L, b - a) for (a, b), rho, L in zip(segments, lag, bw)]}
+
+
 def _serial_covariance(jac: np.ndarray, r: np.ndarray, segments: Sequence[tuple[int, int]], n: int, p: int,
-                       cov: np.ndarray) -> tuple[np.ndarray, dict]:
+                       lag1: Sequence[float]) -> np.ndarray:
     r"""The covariance with the noise's serial correlation: Newey-West's, AR(1)-prewhitened
     per log, :math:`\frac{n}{n-p} B^{-1} \hat S B^{-1}`, :math:`B = J^T J`,
     :math:`\hat S = \sum_{logs} (1-\rho)^{-2} \sum_l w_l \sum_t g_t g_{t-l}^T`,
     :math:`g_t = J_t (r_t - \rho r_{t-1})` (Bartlett weights :math:`w_l`, Andrews' bandwidth)
-    within each log (``segments``: its rows; the rows outside, the contact priors', count
-    alone), where a log's residuals are significantly autocorrelated (:func:`_is_serial`);
-    else ``cov`` as it is.  A load channel low-pass filtered, or sampled faster than its
+    within each log (``segments``: its rows, ``lag1`` their :math:`\rho`; the rows outside,
+    the contact priors', count alone); for logs whose residuals are serially correlated
+    (:func:`_serial_logs`).  A load channel low-pass filtered, or sampled faster than its
     noise changes, has correlated noise: the white-noise covariance had made 95 % intervals
-    4.5 times too narrow (AR(1) 0.9: mu covered in 6 of 29 seeds).  Returns the covariance
-    and what was found per log."""
-    info = {"lag1": [], "bandwidth": [], "method": "white"}
-    for a, b in segments:
-        rho, L = _serial(r[a:b])
-        info["lag1"].append(rho)
-        info["bandwidth"].append(L)
-    serial = [_is_serial(rho, L, b - a) for (a, b), rho, L in zip(segments, info["lag1"], info["bandwidth"])]
-    if not any(serial) or n <= p or not np.all(np.isfinite(jac)):
-        return cov, info
-    _, sv, vt = np.linalg.svd(jac, full_matrices=False)
-    tol = np.finfo(float).eps * max(jac.shape) * (sv[0] if len(sv) else 0.0)
-    good = sv > tol
-    inv = (vt[good].T / sv[good] ** 2) @ vt[good]
+    4.5 times too narrow (AR(1) 0.9: mu covered in 6 of 29 seeds)."""
     inside = np.zeros(len(r), bool)
     meat = np.zeros((p, p))
-    for (a, b), rho in zip(segments, info["lag1"]):
+    for (a, b), rho in zip(segments, lag1):
         inside[a:b] = True
         # prewhitened (Andrews & Monahan 1992): the AR(1) taken out, the rest's Bartlett
         # sum, recoloured by 1 / (1 - rho)^2; the kernel alone, on rho 0.9, had left the
@@ -1205,14 +1211,7 @@ def _serial_covariance(jac: np.ndarray, r: np.ndarray, segments: Sequence[tuple[
         meat += S / (1.0 - rho) ** 2
     g = jac[~inside] * r[~inside, None]
     meat += g.T @ g
-    hac = n / (n - p) * (inv @ meat @ inv)
-    if not good.all():
-        ok = np.all(np.abs(vt[~good]) < 1e-8, axis=0)
-        out = np.full((p, p), np.nan)
-        out[np.ix_(ok, ok)] = hac[np.ix_(ok, ok)]
-        hac = out
-    info["method"] = "newey-west, AR(1)-prewhitened per log (Bartlett kernel, Andrews bandwidth)"
-    return hac, info
+    return _sandwich(jac, n / (n - p), meat)
 
 
 def _intervals(problem: _Problem, theta, cov, n, p) -> dict:
@@ -1359,11 +1358,19 @@ def _solve(problem: _Problem, starts: list[dict], *, seed: int, bootstrap: int) 
     jac = _central_jacobian(problem, theta, bnds) if finite else np.full((rows, p), np.nan)
     row_w = problem.row_weights() if problem.kind == "logs" and len(problem.logs) > 1 else None
     sse_cov = float(np.sum((r / row_w) ** 2)) if row_w is not None else sse
-    cov = _covariance(jac, sse_cov, rows, p, row_w) if finite else np.full((p, p), np.nan)
     serial = None
     if problem.kind == "logs" and finite:
         ends = np.cumsum([int(m.sum()) for m in problem.used])
-        cov, serial = _serial_covariance(jac, r, list(zip(np.r_[0, ends[:-1]], ends)), rows, p, cov)
+        segments = list(zip(np.r_[0, ends[:-1]], ends))
+        serial = _serial_logs(r, segments)
+        serial["method"] = "white"
+    if not finite:
+        cov = np.full((p, p), np.nan)
+    elif serial is not None and any(serial["serial"]) and rows > p and np.all(np.isfinite(jac)):
+        cov = _serial_covariance(jac, r, segments, rows, p, serial["lag1"])
+        serial["method"] = "newey-west, AR(1)-prewhitened per log (Bartlett kernel, Andrews bandwidth)"
+    else:
+        cov = _covariance(jac, sse_cov, rows, p, row_w)
     ci = _intervals(problem, theta, cov, rows, p)
     sse_n = max(sse, np.finfo(float).tiny) / max(n, 1)
     aic = float(n * np.log(sse_n) + 2 * p)
@@ -1373,8 +1380,7 @@ def _solve(problem: _Problem, starts: list[dict], *, seed: int, bootstrap: int) 
     factors: list[float] = []
     if serial is not None:
         metrics.update(residual_lag1=serial["lag1"], covariance=serial["method"])
-        factors = [(1.0 - rho) / (1.0 + rho) if _is_serial(rho, L, int(u.sum())) else 1.0
-                   for rho, L, u in zip(serial["lag1"], serial["bandwidth"], problem.used)]
+        factors = [(1.0 - rho) / (1.0 + rho) if ser else 1.0 for rho, ser in zip(serial["lag1"], serial["serial"])]
     out = FitResult(spec=problem.spec, params=_contract_params(problem.spec, values), ci95=ci, metrics=metrics,
                     residuals=problem.raw_residuals(values), n_obs=n, n_params=p, aic=aic, bic=bic, cov=cov,
                     success=success, param_names=list(problem.names), values=values,
