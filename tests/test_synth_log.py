@@ -118,3 +118,19 @@ def test_no_slip_generator_runs_its_own_fe_and_agrees_with_the_tables():
     np.testing.assert_allclose(truth["force_true_n"][loaded], tab["load_n"][loaded], rtol=0.025)
     hom = _ogden_force(own["extension_mm"] - 0.5)
     assert np.all(truth["force_true_n"][loaded] / hom[loaded] > 1.3)                # bonded is stiffer
+
+
+def test_deep_indentation_log_stays_physical():
+    """A 5 mm punch 4.8 mm deep (the study twin's protocol): the equivalent cylinder had been
+    one punch diameter high, squeezed to a stretch of 0.04 at full depth, and the log's load
+    read 266 kN, flat where the stretch was clipped; now the cylinder is deep enough to keep
+    the compression at 30 %, the force stays a fraction of a newton and still has Sneddon's
+    stiffness at small depth."""
+    frame, truth = synth_indentation_log(indenter_diameter_mm=5.0, depth_mm=4.8, noise_n=0.0, n_points=4000)
+    assert truth["depth_mm"] / truth["height_mm"] == pytest.approx(0.3)
+    f = truth["force_true_n"]
+    assert 0.1 < f.max() < 1.0                              # 8 mu a d = 0.069 N, stiffened by alpha -4.7
+    e = frame["extension_mm"].to_numpy()
+    small = (e > 0.5) & (e < 0.52)
+    k = np.polyfit(e[small] - 0.5, f[small], 1)[0]
+    assert k == pytest.approx(8 * 720.0 * 2.5e-3 * 1e-3, rel=0.01)

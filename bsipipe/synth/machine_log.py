@@ -273,23 +273,38 @@ def synth_compression_log(*, mu_pa: float = 720.0, alpha: float = -4.7,
     return frame, truth
 
 
-def indentation_equivalent_cylinder(indenter_diameter_mm: float) -> tuple[float, float]:
+#: The largest compression of the equivalent cylinder at full depth (:func:`indentation_equivalent_cylinder`).
+INDENTATION_MAX_STRAIN = 0.3
+
+
+def indentation_equivalent_cylinder(indenter_diameter_mm: float, depth_mm: float | None = None,
+                                    max_strain: float = INDENTATION_MAX_STRAIN) -> tuple[float, float]:
     r"""Equivalent homogeneous cylinder ``(diameter_mm, height_mm)`` of a flat-punch indentation.
 
     Sneddon's flat punch of radius :math:`a` on an incompressible half-space has stiffness
     :math:`8 \mu a`; a cylinder of area :math:`A` and height :math:`L` compressed
-    homogeneously has :math:`3 \mu A / L`.  Taking the stressed zone one punch diameter
-    deep, :math:`L = 2a`, matches them with :math:`A = 16 a^2 / 3`.  Beyond small depths
-    this is a model of the in situ test, not its solution: the generator uses it so that the
-    indentation log has a known answer that ``fit-ogden`` can recover with this geometry.
+    homogeneously has :math:`3 \mu A / L`, so :math:`A = 8 a L / 3` matches them for any
+    :math:`L`.  The stressed zone is taken one punch diameter deep, :math:`L = 2a`, or deeper
+    where an indentation ``depth_mm`` would compress it by more than ``max_strain``: a punch
+    sunk deep loads tissue deeper than a diameter, and a zone of :math:`2a` would be squeezed
+    to nothing (a 5 mm punch 4.8 mm deep: a stretch of 0.04, and the twin's log read 266 kN
+    for an Ogden brain of 720 Pa).  Beyond small depths this is a model of the in situ test,
+    not its solution: the generator uses it so that the indentation log has a known answer
+    that ``fit-ogden`` can recover with this geometry.
 
     >>> d, h = indentation_equivalent_cylinder(16.0)
     >>> round(d, 3), h
     (20.847, 16.0)
+    >>> d, h = indentation_equivalent_cylinder(5.0, depth_mm=4.8)
+    >>> round(d, 3), h
+    (11.654, 16.0)
     """
     a = indenter_diameter_mm / 2.0
-    area = 16.0 * a * a / 3.0
-    return float(np.sqrt(4.0 * area / np.pi)), float(2.0 * a)
+    height = 2.0 * a
+    if depth_mm is not None:
+        height = max(height, float(depth_mm) / float(max_strain))
+    area = 8.0 * a * height / 3.0
+    return float(np.sqrt(4.0 * area / np.pi)), float(height)
 
 
 def synth_indentation_log(*, indenter_diameter_mm: float = 16.0, speed_mm_min: float = 12.0,
@@ -297,11 +312,11 @@ def synth_indentation_log(*, indenter_diameter_mm: float = 16.0, speed_mm_min: f
     """An in situ indentation log (12 mm/min to 4.8 mm past contact, the seeds' protocol).
 
     The brain under a flat punch is simulated as its equivalent cylinder
-    (:func:`indentation_equivalent_cylinder`); every other option is
+    (:func:`indentation_equivalent_cylinder`, deep enough for ``depth_mm``); every other option is
     :func:`synth_compression_log`'s.  The truth records the punch and the equivalent
     geometry (``diameter_mm``, ``height_mm``) a fit needs.
     """
-    d_eq, h_eq = indentation_equivalent_cylinder(indenter_diameter_mm)
+    d_eq, h_eq = indentation_equivalent_cylinder(indenter_diameter_mm, depth_mm)
     frame, truth = synth_compression_log(diameter_mm=d_eq, height_mm=h_eq, speed_mm_min=speed_mm_min,
                                          depth_mm=depth_mm, gap_mm=gap_mm, **kw)
     truth.update(test="in-situ-indentation", indenter_diameter_mm=float(indenter_diameter_mm))
