@@ -502,3 +502,30 @@ def test_a_hold_in_the_ramp_is_named_and_left_out_of_the_speed():
     assert ramp_speed_mm_per_min(log, w) == pytest.approx(12.0, rel=1e-6)
     plain = LogRecord(t, v * t, np.zeros_like(t))
     assert ramp_holds(plain, w) == [] and ramp_speed_mm_per_min(plain, w) == pytest.approx(12.0, rel=1e-9)
+
+
+def test_a_clipped_load_cell_is_named_in_the_warnings(case, tmp_path):
+    """The log's force held at a ceiling, to the digit, while the indentor goes on (a load cell
+    at the end of its range): the target force went into target_force.csv unsaid; now a
+    warning names the level and the samples.  The twin's own log has no such warning."""
+    from bsipipe.synth.machine_log import write_bluehill3
+    folder, _, man, _ = case
+    assert not any("end of its range" in w for w in man["warnings"])
+    from bsipipe.synth.config import SynthConfig
+    from bsipipe.synth.twin import Twin
+    frame, log_truth = Twin(SynthConfig(seed=0)).machine_log()
+    ceiling = 0.7 * float(frame["load_n"].max())
+    frame["load_n"] = np.minimum(frame["load_n"], ceiling)
+    write_bluehill3(frame, tmp_path / "clipped.csv", label="clipped",
+                    geometry={"diameter_mm": log_truth["diameter_mm"], "height_mm": log_truth["height_mm"]})
+    cfg = yaml.safe_load((folder / "export.yaml").read_text())
+    cfg["inputs"] = {k: str(folder / v) for k, v in cfg["inputs"].items()}
+    cfg["inputs"]["log"] = str(tmp_path / "clipped.csv")
+    (tmp_path / "export.yaml").write_text(yaml.safe_dump(cfg))
+    res = _invoke("export-fe", tmp_path / "export.yaml", "-o", tmp_path / "out")
+    assert res.exit_code == 0, res.output
+    warnings = json.loads((tmp_path / "out" / "manifest.json").read_text())["warnings"]
+    clipped = [w for w in warnings if "end of its range" in w]
+    assert len(clipped) == 1, warnings
+    n_top = int((frame["load_n"] >= ceiling).sum())
+    assert f"on {n_top} samples" in clipped[0]

@@ -20,6 +20,7 @@ from pydantic import Field, PositiveFloat
 
 from ..config import FitConfig, load_config, validate
 from ..errors import InputError, ProcessingError
+from ..io.machine_log import clipped_top
 from ..quality import listed
 
 log = logging.getLogger(__name__)
@@ -368,57 +369,6 @@ def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig, per_log: dict[str, lis
                        "sign_from": ml.dialect.get("sign_from"),
                        "specimen_label": ml.metadata.get("Specimen label")})
     return logs, inputs
-
-
-#: A clipped top needs at least this many samples at the record's largest force, exactly.
-CLIP_MIN_SAMPLES = 3
-
-
-def clipped_top(disp: np.ndarray, force: np.ndarray, n_before: int = 20) -> dict | None:
-    """Where a log's force stops at a ceiling: a load cell at the end of its range (or an
-    export's) reads one value, exactly, while the platen goes on compressing.  The test: at
-    least :data:`CLIP_MIN_SAMPLES` samples at the record's largest force to the last digit,
-    spread over a travel along which the ``n_before`` samples before the first of them rise by
-    more than 3 times the larger of their scatter and the log's force resolution (so a coarse
-    log whose top few samples round alike, or a hold, is not called clipped).  Returns the
-    first such sample's index, the level (N), the count and that expected rise, or None.
-
-    A 0.5 N ceiling on 18 of 616 samples (the last 3 %) of the probe's log had been fitted as
-    a machine compliance of 1.39 mm/N with alpha turned to +19.4, unsaid.
-
-    >>> d = np.linspace(0, 3, 301); f = np.minimum(0.05 * d ** 3, 1.0)
-    >>> c = clipped_top(d, f); c["first"], c["n_samples"]
-    (272, 29)
-    >>> clipped_top(d, 0.05 * d ** 3) is None
-    True
-    """
-    f = np.asarray(force, float)
-    x = np.asarray(disp, float)
-    if len(f) < n_before + CLIP_MIN_SAMPLES:
-        return None
-    top = float(np.max(f))
-    at = f >= top - 1e-12 * abs(top)
-    idx = np.flatnonzero(at)
-    first = int(idx[0])
-    if len(idx) < CLIP_MIN_SAMPLES or first < n_before:
-        return None
-    span = float(np.ptp(x[idx]))
-    if not span > 0:                      # a hold at one displacement is no clipping
-        return None
-    pre = slice(first - n_before, first)
-    xp, fp = x[pre], f[pre]
-    if not np.ptp(xp) > 0:
-        return None
-    slope, icpt = np.polyfit(xp, fp, 1)
-    scatter = float(np.std(fp - (slope * xp + icpt), ddof=2))
-    levels = np.unique(f)
-    steps = np.diff(levels)
-    resolution = float(steps[steps > 0].min()) if np.any(steps > 0) else 0.0
-    rise = float(slope) * span
-    if not rise > 3.0 * max(scatter, resolution):
-        return None
-    return {"first": first, "level_n": top, "n_samples": int(len(idx)), "travel_mm": span,
-            "expected_rise_n": rise}
 
 
 def _zeroed_loaded(force: np.ndarray, n: int = 10) -> bool:

@@ -639,6 +639,7 @@ def build_handoff(cfg, *, fit: dict, transform, markers_ct: pd.DataFrame, log: L
         failed check when ``checks.on_fail`` is ``error``.
     """
     from ..io._fe_material import prepare_material
+    from ..io.machine_log import clipped_top
     from ..errors import ProcessingError
     from .mesh import demo_block_mesh, interface_springs
 
@@ -759,6 +760,13 @@ def build_handoff(cfg, *, fit: dict, transform, markers_ct: pd.DataFrame, log: L
         raise HandoffError("the indentor does not go into the brain after contact", source="log")
 
     target = force_target(log, window)
+    clip = clipped_top(target["indentation_mm"].to_numpy(), target["force_n"].to_numpy())
+    if clip is not None:
+        warnings.append(
+            f"the log's force stops at {clip['level_n']:.6g} N (after the contact baseline) on {clip['n_samples']} "
+            f"samples over {clip['travel_mm']:.3g} mm of travel, where the 20 samples before rose "
+            f"{clip['expected_rise_n']:.3g} N over as much: a load cell at the end of its range; target_force.csv "
+            "there is the cell's limit, not the brain's force")
     markers = marker_table(markers_ct, names, window.time_s + offset)
 
     holds = ramp_holds(log, window)
