@@ -718,3 +718,56 @@ def test_tiff_stack_with_a_preview_page(tmp_path):
     assert len(got) == 4 and count_frames(p) == 4
     assert all(np.array_equal(g.image, f) for g, f in zip(got, frames))
     assert np.array_equal(read_image(p), frames[0])
+
+
+def _tm(sec: float, digits: int = 6) -> str:
+    """A DICOM TM for ``sec`` seconds after 12:00:00, written to ``digits`` decimals."""
+    whole = int(sec)
+    frac = f"{sec - whole:.{digits}f}"[1:] if digits else ""
+    return f"12{whole // 60:02d}{whole % 60:02d}{frac}"
+
+
+def test_dicom_series_ordered_and_timed_by_the_acquisition_clock(tmp_path):
+    """InstanceNumbers that run against AcquisitionTime (a writer numbering files as it exports
+    them) had ordered the frames backwards and dropped the times as not increasing; a
+    ContentTime of the export (files 8 ms apart) had been taken before the acquisition's 0.5 s
+    clock.  Now the acquisition clock orders and times the frames."""
+    imgs = [_ramp(dtype=np.uint16, seed=s) for s in range(5)]
+    d = tmp_path / "reversed"
+    d.mkdir()
+    for k in range(5):
+        _series_file(d / f"u{k}.dcm", imgs[k], InstanceNumber=5 - k, AcquisitionDate="20261121",
+                     AcquisitionTime=_tm(0.5 * k), ContentDate="20261121", ContentTime=_tm(30 + 0.008 * (4 - k)))
+    frames = list(iter_frames(d))
+    assert [int(f.image[0, 0]) for f in frames] == [int(a[0, 0]) for a in imgs]
+    assert [f.time_s for f in frames] == pytest.approx([0.0, 0.5, 1.0, 1.5, 2.0])
+    e = tmp_path / "export_time"
+    e.mkdir()
+    for k in range(5):
+        _series_file(e / f"v{k}.dcm", imgs[k], InstanceNumber=k + 1, AcquisitionDate="20261121",
+                     AcquisitionTime=_tm(0.5 * k), ContentDate="20261121", ContentTime=_tm(30 + 0.008 * k))
+    assert [f.time_s for f in iter_frames(e)] == pytest.approx([0.0, 0.5, 1.0, 1.5, 2.0])
+
+
+def test_coarse_time_stamps_are_not_dropped_frames(tmp_path):
+    """7.5 frames/s stamped to 0.1 s: intervals of 0.1 and 0.2 s had read as a frame dropped
+    every other frame (12 phantom missing frames per view, differently in each view).  The
+    frames are counted, and the steady rate the stamps allow gives their times; stamps fine
+    enough to see a real gap still number the frames after it."""
+    from bsipipe.io.images import stamp_resolution, time_indices
+    n = 30
+    imgs = [_ramp(8, 8, dtype=np.uint16, seed=s) for s in range(n)]
+    d = tmp_path / "coarse"
+    d.mkdir()
+    stamps = [round(k / 7.5 + 0.05, 1) for k in range(n)]
+    for k in range(n):
+        _series_file(d / f"c{k:02d}.dcm", imgs[k], InstanceNumber=k + 1, AcquisitionDate="20261121",
+                     AcquisitionTime=_tm(stamps[k], 1))
+    frames = list(iter_frames(d))
+    assert [f.index for f in frames] == list(range(n))
+    truth = np.arange(n) / 7.5
+    got = np.array([f.time_s for f in frames])
+    raw = np.array(stamps) - stamps[0]
+    assert np.abs(got - truth).max() < 0.02 < np.abs(raw - truth).max()
+    assert stamp_resolution([0.0, 0.1, 0.3]) == 0.1
+    assert time_indices([0.0, 0.133, 0.267, 0.533, 0.667]) == [0, 1, 2, 4, 5]

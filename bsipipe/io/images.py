@@ -191,16 +191,44 @@ def _name_numbers(files: list[Path]) -> list[int] | None:
 _PERIOD_TOLERANCE = 0.25
 
 
+def stamp_resolution(times) -> float:
+    """The decimal step the time stamps are written to (s): the largest of 1, 0.1, ...,
+    1e-6 s that every stamp (from the first) is a whole multiple of; 0 when none is.
+
+    >>> stamp_resolution([0.0, 0.1, 0.3, 0.4]), stamp_resolution([0.0, 0.133333, 0.266667])
+    (0.1, 1e-06)
+    """
+    t = np.asarray(times, float)
+    t = t - t[0]
+    for k in range(7):
+        q = 10.0 ** -k
+        # within 1 % of the step: times taken from stamps of the epoch (1.7e9 s) keep only
+        # about 2e-7 s of their digits
+        if np.all(np.abs(t / q - np.rint(t / q)) <= 0.01):
+            return q
+    return 0.0
+
+
 def time_indices(times) -> list[int] | None:
     """Frame numbers from a source's own time stamps where they skip frames: each interval
     within a quarter of a whole number of the median interval, some of them two or more (a
     frame the recorder did not store); None where the stamps are missing, irregular or skip
-    nothing (the frames are then counted)."""
+    nothing (the frames are then counted), and where they are written too coarsely to tell
+    (:func:`stamp_resolution` over a quarter of the interval: 7.5 frames/s stamped to 0.1 s
+    has intervals of 0.1 and 0.2 s, which had read as a frame dropped every other frame).
+
+    >>> time_indices([0.0, 0.5, 1.0, 2.0, 2.5])
+    [0, 1, 2, 4, 5]
+    >>> time_indices([0.0, 0.1, 0.3, 0.4, 0.5, 0.7, 0.8]) is None
+    True
+    """
     if times is None or len(times) < 3 or any(t is None for t in times):
         return None
     dt = np.diff(np.asarray(times, float))
     period = float(np.median(dt)) if len(dt) else 0.0
     if not np.isfinite(period) or period <= 0:
+        return None
+    if stamp_resolution(times) > _PERIOD_TOLERANCE * period:
         return None
     m = dt / period
     r = np.rint(m)
@@ -286,10 +314,12 @@ def _dicom_series(files: list[Path]) -> _Series | None:
     else None.  Headers only (no pixel data) are read.
 
     Order: by InstanceNumber when every file has a distinct one, else by acquisition time
-    when every file has a distinct one, else by name (as given).  Times: the first of
-    AcquisitionDateTime, ContentDate + ContentTime, AcquisitionDate + AcquisitionTime that
-    every file has and that increases strictly in that order, relative to the first file;
-    else each file's rank times a FrameTime (ms) that every file states alike; else None."""
+    when every file has a distinct one, else by name (as given); InstanceNumbers that disagree
+    with the acquisition times (AcquisitionDateTime or AcquisitionTime) give way to them, with
+    a warning.  Times: the first of AcquisitionDateTime, AcquisitionDate + AcquisitionTime,
+    ContentDate + ContentTime that every file has and that increases strictly in that order,
+    relative to the first file; else each file's rank times a FrameTime (ms) that every file
+    states alike; else None."""
     if len(files) < 2 or not all(f.suffix.lower() in (".dcm", ".dicom") or
                                  (f.suffix == "" and _is_dicom(f)) for f in files):
         return None
@@ -307,6 +337,13 @@ def _dicom_series(files: list[Path]) -> _Series | None:
         _SERIES_CACHE[key] = series
     return series
 
+
+#: A DICOM series' time stamps, in the order they are taken (the acquisition's own first):
+#: (name, date attribute or None for a DT, time attribute).
+_SERIES_STAMPS = (("AcquisitionDateTime", None, "AcquisitionDateTime"),
+                  ("AcquisitionDate/AcquisitionTime", "AcquisitionDate", "AcquisitionTime"),
+                  ("ContentDate/ContentTime", "ContentDate", "ContentTime"))
+_ACQUISITION_STAMPS = ("AcquisitionDateTime", "AcquisitionDate/AcquisitionTime")
 
 #: The last few series read (:func:`_dicom_series`), keyed by each file's path, mtime and size:
 #: a command lists a source more than once (count, first frame, frames).
@@ -335,10 +372,10 @@ def _read_series(files: list[Path]) -> _Series | None:
                  for u, v in sorted(uids.items(), key=lambda kv: -len(kv[1]))]
         raise InputError(f"the folder holds {len(uids)} DICOM series (SeriesInstanceUID): " + "; ".join(parts)
                          + ": give one series per view (a folder or a glob of its files)", path=files[0].parent)
+    # the acquisition's clock first: ContentTime is when the image was made, which an export
+    # or a reconstruction can set long after (files 8 ms apart for frames 0.5 s apart)
     stamps = {}
-    for key, date_kw, time_kw in (("AcquisitionDateTime", None, "AcquisitionDateTime"),
-                                  ("ContentDate/ContentTime", "ContentDate", "ContentTime"),
-                                  ("AcquisitionDate/AcquisitionTime", "AcquisitionDate", "AcquisitionTime")):
+    for key, date_kw, time_kw in _SERIES_STAMPS:
         t = [_dicom_seconds(ds, date_kw, time_kw) for ds in heads]
         if all(v is not None for v in t) and len(set(t)) == n:
             stamps[key] = np.asarray(t, float)
@@ -362,6 +399,17 @@ def _read_series(files: list[Path]) -> _Series | None:
                          "folder?  Give one run per view", path=files[0].parent)
     if inst is not None and len(set(inst)) == n:
         order, how = np.argsort(inst, kind="stable"), "InstanceNumber"
+        acq = next((k for k in _ACQUISITION_STAMPS if k in stamps), None)
+        if acq is not None and not np.array_equal(np.argsort(stamps[acq], kind="stable"), order):
+            # numbers that disagree with the acquisition clock (a writer that numbers the files
+            # as it exports them): the clock orders the frames; taken in the numbers' order the
+            # frames had run backwards or shuffled and their times were dropped as not increasing
+            by_t = np.argsort(stamps[acq], kind="stable")
+            moved = [files[i].name for i, j in zip(order, by_t) if i != j]
+            log.warning("%s: the InstanceNumbers of %d of the %d DICOM files disagree with their %s (%s%s): "
+                        "the files are taken in the order of their acquisition times", files[0].parent,
+                        len(moved), n, acq, ", ".join(moved[:3]), ", ..." if len(moved) > 3 else "")
+            order, how = by_t, f"{acq} (the InstanceNumbers disagree)"
     elif stamps:
         key = next(iter(stamps))
         order, how = np.argsort(stamps[key], kind="stable"), key
@@ -384,8 +432,43 @@ def _read_series(files: list[Path]) -> _Series | None:
             # instance numbers count the frames (a gap is a frame missing); else the rank
             step = (np.asarray(inst)[order] - inst[order[0]]) if how == "InstanceNumber" else np.arange(n)
             times, how = tuple(float(i) * v / 1000.0 for i in step), f"{how}; times from FrameTime {v:g} ms"
+    if times is not None:
+        times, coarse = _regular_if_coarse(times)
+        if coarse:
+            how += f" (written to {coarse:g} s: a steady rate fitted)"
     numbers = tuple(int(inst[i]) for i in order) if how.startswith("InstanceNumber") else None
     return _Series(tuple(files[i] for i in order), times, how, numbers)
+
+
+def _regular_if_coarse(times) -> tuple[tuple, float]:
+    """Times written too coarsely for their frame interval (:func:`stamp_resolution` over a
+    quarter of it: 7.5 frames/s stamped to 0.1 s) that a steady rate explains to within that
+    resolution: the rate's times (the line on the frame ranks with the least maximum
+    deviation, from its first frame), and the resolution; else the times as given, and 0."""
+    t = np.asarray(times, float)
+    if len(t) < 3:
+        return tuple(times), 0.0
+    q = stamp_resolution(t)
+    dt = np.diff(t)
+    if not (q > 0 and np.median(dt) > 0 and q > _PERIOD_TOLERANCE * float(np.median(dt))):
+        return tuple(times), 0.0
+    # the line nearest to every stamp at once (least maximum deviation, a small linear
+    # program): a rounded stamp lies within half a step of its time, and the least-squares
+    # line is pulled by the rounding's pattern (1.1 % off the rate on 30 frames at 7.5/s)
+    from scipy.optimize import linprog
+    k = np.arange(len(t), dtype=float)
+    one = np.ones_like(k)
+    A = np.vstack([np.column_stack([one, k, -one]), np.column_stack([-one, -k, -one])])
+    res = linprog([0.0, 0.0, 1.0], A_ub=A, b_ub=np.concatenate([t, -t]),
+                  bounds=[(None, None), (None, None), (0.0, None)], method="highs")
+    if not res.success:
+        return tuple(times), 0.0
+    icpt, slope, worst = res.x
+    if not (slope > 0 and worst <= q):
+        return tuple(times), 0.0
+    log.info("time stamps written to %g s for frames %.4g s apart: a steady rate of %.5g frames/s fitted",
+             q, slope, 1.0 / slope)
+    return tuple(float(v) for v in slope * k), q
 
 
 # --- pixel conversion ---------------------------------------------------------------------
