@@ -771,3 +771,25 @@ def test_coarse_time_stamps_are_not_dropped_frames(tmp_path):
     assert np.abs(got - truth).max() < 0.02 < np.abs(raw - truth).max()
     assert stamp_resolution([0.0, 0.1, 0.3]) == 0.1
     assert time_indices([0.0, 0.133, 0.267, 0.533, 0.667]) == [0, 1, 2, 4, 5]
+
+
+def test_clips_of_one_run_play_one_after_another(tmp_path):
+    """A folder of multi-frame files (DICOM clips, ImageJ stacks) each timing its frames from 0:
+    the times had restarted at 0 in every file (8.0, 8.5, 0.0, 0.5 ... in markers2d.csv) and
+    every loop effect failed on them, exit 0.  Each file now starts one frame period after the
+    last frame of the file before."""
+    stack = np.stack([_ramp(dtype=np.uint16, seed=s) for s in range(7)])
+    d = tmp_path / "clips"
+    d.mkdir()
+    _write_dicom(d / "run_1.dcm", stack[:4], frame_time_ms=500.0)
+    _write_dicom(d / "run_2.dcm", stack[4:], frame_time_ms=500.0)
+    fr = list(iter_frames(d))
+    assert [f.index for f in fr] == list(range(7))
+    assert [f.time_s for f in fr] == pytest.approx([0.5 * k for k in range(7)])
+    t = tmp_path / "stacks"
+    t.mkdir()
+    for j, part in enumerate((stack[:3], stack[3:])):
+        tifffile.imwrite(t / f"part{j}.tif", part, imagej=True, metadata={"finterval": 0.25, "axes": "TYX"})
+    assert [f.time_s for f in iter_frames(t)] == pytest.approx([0.25 * k for k in range(7)])
+    # one file alone keeps its own times
+    assert [f.time_s for f in iter_frames(d / "run_2.dcm")] == pytest.approx([0.0, 0.5, 1.0])

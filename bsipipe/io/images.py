@@ -1055,9 +1055,37 @@ def iter_frames(source: str | os.PathLike, *, dtype=None, channel: int | None = 
     index = base = 0
     n_files = 0
     prev_f = None
+    # several files each with its own clock from 0 (clips of a run, video chunks): played one
+    # after another, each file's times start one frame period after the last frame before it
+    # (they had restarted at 0 in each file, and every loop effect failed on times that did
+    # not increase)
+    joined = 0.0                # added to the current file's own times
+    last_t = own_prev = None    # the last frame's time (joined), the current file's last own time
+    ivals: list[float] = []     # frame intervals within files
+    n_joined = 0
     for f, (name, img, t, k) in _files_in_order(files, dtype, channel, hashes, int(workers)):
-        if f != prev_f:
+        new_file = f != prev_f
+        if new_file:
             n_files, prev_f = n_files + 1, f
+        if times is None and t is not None:
+            if new_file:
+                if last_t is not None:
+                    if not ivals:
+                        raise InputError("the files of this source each hold their own frame times from 0, and the "
+                                         f"one before {Path(f).name} has a single frame: the files cannot be put one "
+                                         "after another in time; give --fps, or one file per view", path=f)
+                    joined = last_t + float(np.median(ivals[-64:])) - t
+                    n_joined += 1
+                    if n_joined == 1:
+                        log.warning("%s: its files each hold their own frame times from 0 (%s, %s, ...): they are "
+                                    "taken one after another, each starting one frame period after the last frame "
+                                    "of the file before (a pause between the files is not known)",
+                                    source, Path(files[0]).name, Path(f).name)
+            elif own_prev is not None and t > own_prev:
+                ivals.append((t - own_prev) / max(1, k - own_k))
+            own_prev, own_k = t, k
+            t = t + joined
+            last_t = t
         if k == 0:
             # a frame missing from the numbering (or skipped by a file's own times) keeps its index
             base = max(index, numbered[f]) if numbered is not None else index
