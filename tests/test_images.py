@@ -793,3 +793,27 @@ def test_clips_of_one_run_play_one_after_another(tmp_path):
     assert [f.time_s for f in iter_frames(t)] == pytest.approx([0.25 * k for k in range(7)])
     # one file alone keeps its own times
     assert [f.time_s for f in iter_frames(d / "run_2.dcm")] == pytest.approx([0.0, 0.5, 1.0])
+
+
+def test_an_image_among_a_dicom_series_is_named(tmp_path):
+    """A preview PNG of the same size among a series' UID-named files had turned the series
+    off: the files came in name order with the preview as a frame, times lost, exit 0."""
+    import cv2
+    from bsipipe.errors import InputError
+    imgs = [_ramp(seed=s) for s in range(4)]
+    d = tmp_path / "series"
+    d.mkdir()
+    for k in range(3):
+        _series_file(d / f"1.2.{7 - k}.dcm", imgs[k], InstanceNumber=k + 1)
+    assert len(list(iter_frames(d))) == 3
+    cv2.imwrite(str(d / "preview.png"), imgs[3])
+    with pytest.raises(InputError, match=r"3 DICOM files and 1 other image file\(s\) \(preview.png\)"):
+        list(iter_frames(d))
+    assert len(list(iter_frames(str(d / "*.dcm")))) == 3
+
+
+def test_a_folder_of_videos_says_how_to_give_them(tmp_path):
+    from bsipipe.errors import InputError
+    (tmp_path / "part1.avi").write_bytes(b"RIFF")
+    with pytest.raises(InputError, match=r"folder holds videos \(part1.avi\).*\*\.avi"):
+        list(iter_frames(tmp_path))

@@ -104,6 +104,12 @@ def _by_name(source: str | os.PathLike) -> list[Path]:
                  and q.name.upper() != "DICOMDIR"
                  and (q.suffix.lower() in IMAGE_SUFFIXES or (q.suffix == "" and _is_dicom(q)))]
         if not files:
+            videos = sorted((q.name for q in p.iterdir() if q.is_file() and q.suffix.lower() in VIDEO_SUFFIXES),
+                            key=natural_key)
+            if videos:
+                raise InputError(f"folder holds videos ({', '.join(videos[:3])}{', ...' if len(videos) > 3 else ''}), "
+                                 "not image files: give the video, or a glob of them "
+                                 f"({p / ('*' + Path(videos[0]).suffix)}) to play them one after another", path=p)
             raise InputError("folder holds no image files (PNG, TIFF, JPEG, BMP, DICOM)", path=p)
     elif any(c in s for c in "*?["):
         files = [Path(q) for q in _glob.glob(s) if Path(q).is_file()]
@@ -320,8 +326,18 @@ def _dicom_series(files: list[Path]) -> _Series | None:
     ContentDate + ContentTime that every file has and that increases strictly in that order,
     relative to the first file; else each file's rank times a FrameTime (ms) that every file
     states alike; else None."""
-    if len(files) < 2 or not all(f.suffix.lower() in (".dcm", ".dicom") or
-                                 (f.suffix == "" and _is_dicom(f)) for f in files):
+    if len(files) < 2:
+        return None
+    dicom = [f.suffix.lower() in (".dcm", ".dicom") or (f.suffix == "" and _is_dicom(f)) for f in files]
+    if not all(dicom):
+        if sum(dicom) >= 2:
+            # a preview or an export among a series' files: read by name, the UID-named files
+            # had come in name order with the stray image as a frame, times lost, exit 0
+            other = [f.name for f, d in zip(files, dicom) if not d]
+            raise InputError(f"the folder holds {sum(dicom)} DICOM files and {len(other)} other image file(s) "
+                             f"({', '.join(other[:3])}{', ...' if len(other) > 3 else ''}): one view's frames are "
+                             "one kind of file; move the others out, or give a glob of the DICOM files",
+                             path=files[0].parent)
         return None
     try:
         stats = [f.stat() for f in files]
@@ -870,7 +886,7 @@ def _iter_file(path: Path, dtype, channel, hashes: dict | None = None
             n = len(tif.pages)                  # indexes every page: a damaged page list is logged
             errors.check(path)
             if n == 0:
-                raise InputError("TIFF file has no pages", path=path)
+                raise InputError("TIFF file has no pages (damaged or truncated)", path=path)
             # a stack's own times (OME DeltaT, ImageJ frame interval); a gap of whole periods
             # numbers the pages after it by time, as a DICOM clip's
             all_times = _tiff_times(tif, n)
