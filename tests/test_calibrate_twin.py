@@ -52,11 +52,11 @@ def pincushion(tmp_path_factory):
                                  "--grid", "7x15", "--spacing-mm", "7", "-o", str(out)])
     print(r.output)
     assert r.exit_code == 0, r.output
-    return tw, json.loads((out / "calibration.json").read_text())
+    return tw, json.loads((out / "calibration.json").read_text()), c
 
 
 def test_twin_pincushion_intrinsics_and_distortion_map(pincushion):
-    tw, res = pincushion
+    tw, res, _ = pincushion
     for name in ("cam1", "cam2"):
         arm, v = tw.arms[name], res["views"][name]
         K, Kt = np.asarray(v["camera_matrix"]), arm.camera.K
@@ -80,7 +80,7 @@ def test_twin_pincushion_intrinsics_and_distortion_map(pincushion):
 
 
 def test_twin_stereo_extrinsics(pincushion):
-    tw, res = pincushion
+    tw, res, _ = pincushion
     st, truth = res["stereo"], stereo_extrinsics(tw.arms["cam1"].camera, tw.arms["cam2"].camera)
     R, Rt = np.asarray(st["R"]), np.asarray(truth["R"])
     ang = float(np.degrees(np.linalg.norm(cv2.Rodrigues(R @ Rt.T)[0])))
@@ -88,6 +88,23 @@ def test_twin_stereo_extrinsics(pincushion):
     print(f"stereo: rotation error {ang:.4f} deg, translation error {dt:.3f} mm "
           f"(baseline {np.linalg.norm(truth['T_mm']):.1f} mm), RMS {st['rms_px']:.4f} px")
     assert ang < 0.1 and dt < 0.5
+
+
+def test_stereo_folders_given_the_wrong_way_round_are_refused(pincushion, tmp_path):
+    """--stereo cam1=<cam2's frames> --stereo cam2=<cam1's>: each camera had calibrated with 6
+    of its 18 views from the other C-arm, exit 0 (the probe: fx 39 px off, the stereo rotation
+    177 degrees off at an RMS of 0.27 px).  Each camera's stereo frames are now posed under its
+    own views' intrinsics: they fit the other camera's and not their own, exit 2 naming it; the
+    right way round (the fixture) has no such warning."""
+    _, res, c = pincushion
+    assert not [w for w in res["warnings"] if w["code"] == "stereo-frames-disagree"]
+    r = CliRunner().invoke(cli, ["calibrate", "--view", f"cam1={c / 'cam1'}", "--view", f"cam2={c / 'cam2'}",
+                                 "--stereo", f"cam1={c / 'stereo' / 'cam2'}", "--stereo",
+                                 f"cam2={c / 'stereo' / 'cam1'}", "--pattern", "asymmetric-circles",
+                                 "--grid", "7x15", "--spacing-mm", "7", "--no-loop", "-o", str(tmp_path / "out")])
+    assert r.exit_code == 2, r.output
+    assert "the --stereo folders look swapped" in r.output
+    assert not (tmp_path / "out" / "calibration.json").exists()
 
 
 def test_twin_undeclared_s_distortion_is_found_by_the_loop():

@@ -546,6 +546,67 @@ def _same_part_everywhere(name: str, cfg: CalibrateConfig, views: dict):
                    logger=log, view=name, n_points=n, grid_points=cols * rows)
 
 
+#: A camera's --stereo frames disagree with its --view frames when their median RMS, posed under
+#: the --view frames' intrinsics, is over this many times the --view frames' own outlier
+#: threshold (:func:`~bsipipe.imaging.calibrate.outlier_threshold_px`) and over this many pixels.
+SOURCES_DISAGREE_FACTOR = 1.0
+SOURCES_DISAGREE_PX = 0.0
+
+
+def _own_views_fit(name: str, views: dict, image_size, spec, centre=None) -> dict | None:
+    """For a camera given both --view and --stereo frames (3 or more each): its --view frames'
+    intrinsics (the camera's final model, ``spec``, calibrated on them alone), the threshold a view of its
+    own keeps under (:func:`outlier_threshold_px` of their RMS) and the median RMS of its
+    --stereo frames posed under them (:func:`posed_rms`); else None."""
+    import cv2
+
+    from ..imaging.calibrate import calibrate_camera, outlier_threshold_px, posed_rms
+    own = [v for k, v in views.items() if not k.startswith("stereo/")]
+    shared = [v for k, v in views.items() if k.startswith("stereo/")]
+    if len(own) < 3 or len(shared) < 3:
+        return None
+    try:
+        cal = calibrate_camera(own, image_size, spec, twist_centre_px=centre)
+    except (ValueError, cv2.error):
+        return None
+    thr = outlier_threshold_px(list(cal.per_view_rms_px.values()))
+    return {"camera": cal.camera, "threshold_px": thr, "stereo_views": shared,
+            "stereo_rms_px": float(np.median(posed_rms(cal.camera, shared)))}
+
+
+def _stereo_frames_belong(name: str, fit: dict, fits: dict, cfg, warnings: list, warning) -> None:
+    """The check of :func:`_own_views_fit`: --stereo frames that do not fit the camera's own
+    --view frames are another camera's (exit 2 where they fit the other --stereo camera's own
+    frames: the two --stereo folders given the wrong way round), or a warning.  Swapped, each
+    camera had calibrated with 6 of its 18 views from the other C-arm: fx 39 px off, the stereo
+    rotation 177 degrees off, its RMS 0.27 px, exit 0."""
+    from ..imaging.calibrate import posed_rms
+    limit = max(SOURCES_DISAGREE_FACTOR * fit["threshold_px"], SOURCES_DISAGREE_PX)
+    if fit["stereo_rms_px"] <= limit:
+        return
+    others = [o for o in cfg.stereo if o != name and o in fits]
+    for o in others:
+        theirs = fits[o]
+        mine_there = float(np.median(posed_rms(theirs["camera"], fit["stereo_views"])))
+        theirs_here = float(np.median(posed_rms(fit["camera"], theirs["stereo_views"])))
+        if (theirs["stereo_rms_px"] > max(SOURCES_DISAGREE_FACTOR * theirs["threshold_px"], SOURCES_DISAGREE_PX)
+                and mine_there <= max(SOURCES_DISAGREE_FACTOR * theirs["threshold_px"], SOURCES_DISAGREE_PX)
+                and theirs_here <= limit):
+            raise InputError(
+                f"the --stereo folders look swapped: the frames given for {name} ({cfg.stereo[name]}) fit {o}'s own "
+                f"views (median RMS {mine_there:.3g} px posed with {o}'s intrinsics) and not {name}'s "
+                f"({fit['stereo_rms_px']:.3g} px), and those given for {o} fit {name}'s ({theirs_here:.3g} px) and not "
+                f"{o}'s ({theirs['stereo_rms_px']:.3g} px): give --stereo {name}=<{name}'s folder> "
+                f"--stereo {o}=<{o}'s folder>", path=cfg.stereo[name])
+    warnings.append(warning(
+        "stereo-frames-disagree",
+        f"calibrate: {name}: its --stereo frames do not fit the intrinsics of its --view frames (median RMS "
+        f"{fit['stereo_rms_px']:.3g} px posed with them, against {fit['threshold_px']:.3g} px for a view of its own): "
+        "frames of another C-arm, or the C-arm moved or was set up otherwise between the two sets; the camera is "
+        "calibrated on both, and the outlier test sees only single views", logger=log, view=name,
+        stereo_rms_px=fit["stereo_rms_px"], own_threshold_px=fit["threshold_px"]))
+
+
 def _failures(rejected: dict[str, str], max_reasons: int = 3) -> str:
     """The reasons views failed, each once with the views it applies to (the same wrong
     ``--grid`` fails every view alike)."""
@@ -597,6 +658,7 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
     rs = ResultSet(out, primary="calibration.json", outputs=("mayacam_*.txt", "residuals_*.png"))
     inputs: list[str] = []
     camera_pixels: dict[str, set] = {}     # camera -> the digests of its images' pixels
+    own_fits: dict[str, dict] = {}         # camera -> its --view frames' fit (:func:`_own_views_fit`)
     for name, sources in cameras.items():
         views: dict = {}
         rejected: dict[str, str] = {}
@@ -666,6 +728,10 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
             hf = heldout_error(final, folds=folds)
             h0 = hf
         final.heldout_rms_px, final.heldout_per_view_rms_px = hf
+        fit = _own_views_fit(name, views, image_size, final.camera.spec, None if size[2] == "none" else size[2])
+        if fit is not None:
+            own_fits[name] = fit
+            _stereo_frames_belong(name, fit, own_fits, cfg, warnings, warning)
         final.std_jackknife = jackknife_std(folds)
         _focal_length_determined(name, final, sources[0][1])
         if len(final.views) < MIN_HELDOUT_VIEWS:

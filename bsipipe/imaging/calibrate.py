@@ -701,6 +701,16 @@ def _held_out_rms(cal_wo: Calibration, cal: Calibration, k: int) -> float:
     return _rms(v.image_points - cal_wo.camera.project(v.object_points, r, t))
 
 
+def posed_rms(camera, views: Sequence[ViewData]) -> np.ndarray:
+    """Each view's reprojection RMS (px) under ``camera``'s intrinsics, its pose fitted alone
+    (``solvePnP``): how well views that took no part in a calibration fit it."""
+    out = []
+    for v in views:
+        r, t = camera.solve_pose(v.object_points, v.image_points)
+        out.append(_rms(v.image_points - camera.project(v.object_points, r, t)))
+    return np.asarray(out, float)
+
+
 def _influence(cal: Calibration, cal_wo: Calibration, keep: Sequence[ViewData]) -> float:
     """How much leaving views out of ``cal`` lowers the RMS of the views ``keep`` (``cal_wo``
     is the calibration on ``keep`` alone): 1 - RMS without / RMS with them."""
