@@ -134,13 +134,19 @@ def test_field_centre_fixes_a_loose_principal_point():
     ef, ek = abs(Kf[0, 0] / K_TRUE[0, 0] - 1), abs(Kk[0, 0] / K_TRUE[0, 0] - 1)
     print(f"fitted: cx {Kf[0, 2]:.1f} cy {Kf[1, 2]:.1f} fx err {100 * ef:.2f} %, held-out {hf[0]:.4f} px; at the "
           f"field centre: fx err {100 * ek:.2f} %, held-out {hk[0]:.4f} px; {kept.camera.spec.describe()}")
-    assert info["source"] == "field-centre" and {"cx", "cy"} & set(weak)
+    assert info["source"] == "field-centre"
+    # the parameters warned about are the delivered model's: cx, cy are fixed there (the free
+    # fit's spread of cx had been warned about for a cx held at the field centre), and their
+    # leave-one-view-out spread is 0, not the 1e-13 of rounding
+    assert not {"cx", "cy"} & set(weak)
+    assert kept.std_jackknife["cx_px"] == 0.0 and kept.std_jackknife["cy_px"] == 0.0
     assert tuple(Kk[:2, 2]) == pytest.approx(centre, abs=1e-9)
     assert kept.camera.spec.fix_principal_point and "fixed-principal-point" in kept.camera.spec.describe()
     assert ek < 0.5 * ef
     assert info["heldout_rms_px"] == {"fitted": hf[0], "field_centre": hk[0]} and hk[0] > hf[0]
-    [w] = [w for w in warnings if w["code"] == "weak-intrinsics"]
-    assert w["principal_point"] == "field-centre" and "fixed at the intensifier's field centre" in w["message"]
+    for w in warnings:
+        if w["code"] == "weak-intrinsics":
+            assert w["principal_point"] == "field-centre" and "cx " not in w["message"]
 
 
 def test_field_centre_far_from_the_principal_point_is_warned():

@@ -252,3 +252,23 @@ def test_loop_fits_a_richer_model_from_the_model_it_augments():
     print(f"off-centre twist: loop added {report.effects}; RMS {final.rms_px:.4f} px, held-out {h:.4f} px")
     assert report.effects == ["s-distortion", "local-distortion"]
     assert h < 0.12 and final.rms_px < 0.08
+
+
+def test_field_centre_principal_point_is_what_the_report_describes(pincushion, tmp_path):
+    """principal_point field-centre: the loop's ``final`` had described the fit with cx, cy free
+    (cx 447.0, held-out 0.0733 px) beside a delivered model with them fixed (cx 509.1, 0.0880
+    px), unsaid.  ``loop.final.delivered`` now gives the delivered model's RMS and held-out RMS,
+    the ones at the top of the camera's entry."""
+    _, _, c = pincushion
+    out = tmp_path / "out"
+    r = CliRunner().invoke(cli, ["calibrate", "--view", f"cam1={c / 'cam1'}", "--pattern", "asymmetric-circles",
+                                 "--grid", "7x15", "--spacing-mm", "7", "--principal-point", "field-centre",
+                                 "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    v = json.loads((out / "calibration.json").read_text())["views"]["cam1"]
+    K = np.asarray(v["camera_matrix"])
+    assert [K[0, 2], K[1, 2]] == pytest.approx(v["field_centre_px"], abs=1e-9)
+    got = v["loop"]["final"]["delivered"]
+    assert got["principal_point"] == "field-centre"
+    assert got["rms_px"] == pytest.approx(v["rms_px"]) and got["heldout_rms_px"] == pytest.approx(v["heldout_rms_px"])
+    assert v["std_jackknife"]["cx"] == 0.0 and v["std_jackknife"]["cy"] == 0.0

@@ -439,6 +439,9 @@ def _principal_point(name: str, free, hf, image_size, centre, cfg: CalibrateConf
         hk = heldout_error(kept, folds=folds)
         kept.heldout_rms_px, kept.heldout_per_view_rms_px = hk
         kept.std_jackknife = jackknife_std(folds)
+        # the parameters of the model delivered: cx, cy are fixed there (the free fit's spread
+        # of cx had been warned about, "cx 447.0 moves by +/-4.9 px", for a cx held at 509.1)
+        weak = weak_intrinsics(kept)
         info.update(source="field-centre", rms_px={"fitted": free.rms_px, "field_centre": kept.rms_px},
                     heldout_rms_px={"fitted": hf[0], "field_centre": hk[0]},
                     focal_px={"fitted": [float(K[0, 0]), float(K[1, 1])],
@@ -752,6 +755,12 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
         d["image_size"] = list(image_size)
         if name in loops:
             d["loop"] = loops[name]
+            if pp_info["source"] == "field-centre":
+                # the loop chose the model with cx, cy free; what is delivered has them fixed
+                d["loop"]["final"]["delivered"] = {
+                    "principal_point": "field-centre", "rms_px": final.rms_px, "heldout_rms_px": hf[0],
+                    "note": "the loop's model with cx, cy fixed at the intensifier's field centre: the numbers above "
+                            "are its fit with them free"}
         result_views[name] = d
         log.info("calibrate: %s: %s, RMS %.4f px, held-out %.4f px (declared model %.4f px), %d views, %d left out",
                  name, final.camera.spec.describe(), final.rms_px, hf[0], h0[0], len(final.views), len(rejected))

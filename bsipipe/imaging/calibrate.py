@@ -801,7 +801,10 @@ def jackknife_std(folds: Sequence[dict]) -> dict[str, float]:
     for k in names:
         a = np.array([f[k] for f in folds], float)
         if np.all(np.isfinite(a)):
-            out[k] = float(np.sqrt((n - 1) / n * np.sum((a - a.mean()) ** 2)))
+            # a parameter held fixed (a principal point at the field centre) does not move: 0,
+            # not the 1e-13 its rounding would give
+            still = np.ptp(a) <= 1e-9 * max(1.0, float(np.abs(a).max()))
+            out[k] = 0.0 if still else float(np.sqrt((n - 1) / n * np.sum((a - a.mean()) ** 2)))
     return out
 
 
