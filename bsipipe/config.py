@@ -91,7 +91,7 @@ def _format_validation_error(err: ValidationError) -> tuple[str, str]:
         msg = e.get("msg", "invalid value")
         if kind == "value_error" and msg.startswith("Value error, "):
             msg = msg[len("Value error, "):]
-        if "input" in e and not isinstance(e["input"], (dict, list)):
+        if "input" in e and not isinstance(e["input"], (dict, list)) and f"got {e['input']!r}" not in msg:
             msg += f" (got {e['input']!r})"
     rest = err.errors()[1:]
     if rest:

@@ -316,8 +316,16 @@ def test_too_few_views_message_has_no_dangling_fragment(tmp_path):
     r = CliRunner().invoke(cli, ["calibrate", "--images", str(d), "--pattern", "chessboard", "--grid", "9x6",
                                  "--spacing-mm", "25", "-o", str(tmp_path / "o")])
     print(r.output)
-    assert r.exit_code == 1
-    assert "needs at least 3" in r.output and "failed: )" not in r.output and "(0 failed" not in r.output
+    # two images given: the input's fault (exit 2; it had been 1, a processing failure)
+    assert r.exit_code == 2
+    assert "2 image(s) given" in r.output and "at least 3" in r.output
+    assert "failed: )" not in r.output and "(0 failed" not in r.output
+    # three given, the target found in two: the calibration cannot be done (exit 1)
+    blank = np.zeros((480, 640), np.uint8)
+    cv2.imwrite(str(d / "blank.png"), blank)
+    r = CliRunner().invoke(cli, ["calibrate", "--images", str(d), "--pattern", "chessboard", "--grid", "9x6",
+                                 "--spacing-mm", "25", "-o", str(tmp_path / "o")])
+    assert r.exit_code == 1 and "found in 2 image(s), calibration needs at least 3" in r.output, r.output
 
 
 # --- 7. the loop's documented rule ------------------------------------------------------------

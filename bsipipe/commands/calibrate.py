@@ -170,7 +170,9 @@ def build_config(config_path=None, *, images=None, pattern=None, grid=None, spac
     if cfg.images is not None and cfg.view_name in cfg.views:
         raise InputError(f"camera {cfg.view_name!r} is given both by --images and --view")
     if cfg.stereo and len(cfg.stereo) != 2:
-        raise InputError(f"--stereo needs exactly two cameras (NAME=DIR twice), got {len(cfg.stereo)}")
+        raise InputError(f"--stereo needs exactly two cameras (NAME=DIR twice, or two entries under the config's "
+                         f"'stereo'), got {len(cfg.stereo)}: {', '.join(cfg.stereo)}", path=config_path,
+                         key="stereo" if config_path else None)
     for name in [cfg.view_name, *cfg.views, *cfg.stereo]:
         # a camera's name names its files (mayacam_NAME.txt, residuals_NAME.png)
         if not name or any(c in name for c in "/\\") or name in (".", ".."):
@@ -703,6 +705,11 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
             if mismatches and 2 * len(mismatches) >= len(rejected):  # --grid does not fit the board
                 raise _grid_mismatch_error(name, cfg, mismatches, sources[0][1])
             why = f" ({len(rejected)} failed: {_failures(rejected)})" if rejected else ""
+            if len(sizes) - len(copies) < 3:
+                # too few images given is the input's fault, not the calibration's
+                raise InputError(f"camera {name}: {len(sizes) - len(copies)} image(s) given, calibration needs views "
+                                 f"of the target in at least 3 (10 or more at different tilts){why}",
+                                 path=sources[0][1])
             raise ProcessingError(f"camera {name}: the target was found in {len(views)} image(s), calibration needs "
                                   f"at least 3{why}", path=sources[0][1])
         image_size = size[0]
