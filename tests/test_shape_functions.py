@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bsipipe.geometry.shape_functions import (ELEMENTS, PointLocator, _HEX20_EDGES, _TET10_EDGES,
+from bsipipe.geometry.shape_functions import (ELEMENTS, PointLocator, _HEX20_EDGES, _TET10_EDGES, _WEDGE15_EDGES,
                                               element_type, interpolate, inverse_map, shape_functions)
 
 # Six tetrahedra of a brick around its diagonal node 0 - node 6 (0-based C3D8 order).
@@ -50,9 +50,16 @@ def hex_to_tet(conn):
     return np.array([[h[a] for a in t] for h in conn for t in KUHN], dtype=np.int64)
 
 
+def hex_to_wedge(conn):
+    """Two C3D6 wedges per C3D8 brick, split across its diagonal 1-3 (0-based 0-2)."""
+    return np.array([[h[a] for a in w] for h in conn for w in ((0, 1, 2, 4, 5, 6), (0, 2, 3, 4, 6, 7))],
+                    dtype=np.int64)
+
+
 def add_midside(coords, conn, kind):
-    """Quadratic elements from linear ones: ``kind`` "C3D10" (from C3D4) or "C3D20" (from C3D8)."""
-    edges = _TET10_EDGES if kind == "C3D10" else _HEX20_EDGES
+    """Quadratic elements from linear ones: ``kind`` "C3D10" (from C3D4), "C3D15" (from C3D6) or
+    "C3D20" (from C3D8)."""
+    edges = {"C3D10": _TET10_EDGES, "C3D15": _WEDGE15_EDGES, "C3D20": _HEX20_EDGES}[kind]
     coords = [tuple(c) for c in coords]
     index: dict = {}
     out = []
@@ -78,6 +85,8 @@ def points_inside(n, size=(10.0, 8.0, 6.0), margin=0.5, seed=1):
 def random_natural(et, n, rng, inside=True):
     if et.family == "hex":
         return rng.uniform(-1, 1, (n, 3)) if inside else rng.uniform(-1.5, 1.5, (n, 3))
+    if et.family == "wedge":
+        return np.column_stack([rng.dirichlet(np.ones(3), n)[:, :2], rng.uniform(-1, 1, n)])
     return rng.dirichlet(np.ones(4), n)[:, :3]
 
 
@@ -116,8 +125,9 @@ def test_element_names():
     assert element_type("C3D8R").name == "C3D8"
     assert element_type("c3d10m").name == "C3D10"
     assert element_type("hexahedron20").name == "C3D20"
+    assert element_type("C3D6H").name == "C3D6" and element_type("wedge15").name == "C3D15"
     with pytest.raises(KeyError):
-        element_type("C3D6")
+        element_type("C3D27")
     with pytest.raises(KeyError):
         element_type("C3D8X1")
 
@@ -175,7 +185,7 @@ def test_linear_fields_are_reproduced_exactly(name):
     assert np.abs(interpolate(name, linear_field(X), xi) - linear_field(x)).max() < 1e-13
 
 
-@pytest.mark.parametrize("name", ["C3D10", "C3D20"])
+@pytest.mark.parametrize("name", ["C3D10", "C3D15", "C3D20"])
 def test_quadratic_fields_are_reproduced_by_straight_edged_quadratic_elements(name):
     rng = np.random.default_rng(5)
     et = ELEMENTS[name]
@@ -207,6 +217,11 @@ def _mesh(kind, jitter=0.15):
     coords, conn = brick_hex(5, 4, 3, jitter=jitter, seed=7)
     if kind == "C3D8":
         return coords, [("C3D8", conn)]
+    if kind == "C3D6":
+        return coords, [("C3D6", hex_to_wedge(conn))]
+    if kind == "C3D15":
+        c, q = add_midside(coords, hex_to_wedge(conn), "C3D15")
+        return c, [("C3D15", q)]
     if kind == "C3D20":
         c, q = add_midside(coords, conn, "C3D20")
         return c, [("C3D20", q)]
@@ -217,7 +232,7 @@ def _mesh(kind, jitter=0.15):
     return c, [("C3D10", q)]
 
 
-@pytest.mark.parametrize("kind", ["C3D8", "C3D4", "C3D10", "C3D20"])
+@pytest.mark.parametrize("kind", ["C3D8", "C3D4", "C3D10", "C3D20", "C3D6", "C3D15"])
 def test_locate_points_in_meshes_with_moved_interior_nodes(kind):
     coords, blocks = _mesh(kind)
     loc = PointLocator(coords, blocks)
@@ -249,7 +264,7 @@ def test_points_outside_the_mesh():
     assert np.isnan(u[2]).all()
 
 
-@pytest.mark.parametrize("kind", ["C3D8", "C3D4", "C3D10", "C3D20"])
+@pytest.mark.parametrize("kind", ["C3D8", "C3D4", "C3D10", "C3D20", "C3D6", "C3D15"])
 def test_distance_outside_is_the_nearest_surface_point_in_space(kind):
     """120 points 0.3 mm outside the brick's faces: the distance is 0.3 mm for every element
     type.  The nearest point had been the projection in natural coordinates, a point of the

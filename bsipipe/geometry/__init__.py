@@ -2,7 +2,7 @@
 
 ``registration`` -- rigid / similarity transforms (Kabsch, Umeyama), FRE, FLE, TRE;
 ``registration_effects`` -- the register stage's loop (effects ``scale``, ``moving-reference``, ``label-swap``);
-``shape_functions`` -- C3D4, C3D10, C3D8, C3D20 shape functions, inverse mapping, point location.
+``shape_functions`` -- C3D4, C3D10, C3D6, C3D15, C3D8, C3D20 shape functions, inverse mapping, point location.
 
 The public names are re-exported here and imported on first use, so importing one module
 does not import the others.

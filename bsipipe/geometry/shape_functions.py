@@ -1,6 +1,6 @@
 r"""Isoparametric solid elements: shape functions, inverse mapping, point location.
 
-Elements and node orders are ABAQUS's (also VTK's and meshio's for these four):
+Elements and node orders are ABAQUS's (also VTK's and meshio's for these six):
 
 ========  =====================  ==========================================================
 name      reference element      shape functions :math:`N_i(\xi, \eta, \zeta)`
@@ -8,6 +8,12 @@ name      reference element      shape functions :math:`N_i(\xi, \eta, \zeta)`
 C3D4      tetrahedron            :math:`L_1 = 1 - \xi - \eta - \zeta,\ L_2 = \xi,\ L_3 = \eta,\ L_4 = \zeta`
 C3D10     tetrahedron            corners :math:`L_i (2 L_i - 1)`; mid-edge nodes 5..10 on edges
                                  1-2, 2-3, 3-1, 1-4, 2-4, 3-4: :math:`4 L_i L_j`
+C3D6      wedge (triangle        :math:`L_i (1 \mp \zeta) / 2` (nodes 1-3 at :math:`\zeta = -1`, 4-6 above them)
+          :math:`\times [-1, 1]`)
+C3D15     wedge                  corners :math:`\frac12 L_i (2 L_i - 1)(1 \mp \zeta) - \frac12 L_i (1 - \zeta^2)`;
+                                 nodes 7-12 on the triangles' edges 1-2, 2-3, 3-1, 4-5, 5-6, 6-4:
+                                 :math:`2 L_i L_j (1 \mp \zeta)`; 13-15 on the sides 1-4, 2-5, 3-6:
+                                 :math:`L_i (1 - \zeta^2)`
 C3D8      cube :math:`[-1, 1]^3`   :math:`\frac18 (1 + \xi\xi_i)(1 + \eta\eta_i)(1 + \zeta\zeta_i)`
 C3D20     cube :math:`[-1, 1]^3`   corners :math:`\frac18 (1+\xi\xi_i)(1+\eta\eta_i)(1+\zeta\zeta_i)(\xi\xi_i+\eta\eta_i+\zeta\zeta_i-2)`;
                                  mid-edge nodes 9..20 (edges 1-2, 2-3, 3-4, 4-1, 5-6, 6-7,
@@ -129,6 +135,91 @@ def _tet10_d(xi):
     return d
 
 
+# Wedges (triangular prisms): triangle coordinates (g, h) with L1 = 1 - g - h, L2 = g, L3 = h,
+# and r in [-1, 1] along the prism; nodes 1-3 at r = -1, 4-6 above them at r = +1.
+_WEDGE6_NODES = np.array([[0, 0, -1], [1, 0, -1], [0, 1, -1], [0, 0, 1], [1, 0, 1], [0, 1, 1]], dtype=float)
+_WEDGE_TRI_EDGES = [(0, 1), (1, 2), (2, 0)]
+_WEDGE15_NODES = np.vstack([_WEDGE6_NODES]
+                           + [(_WEDGE6_NODES[a] + _WEDGE6_NODES[b]) / 2 for a, b in _WEDGE_TRI_EDGES]
+                           + [(_WEDGE6_NODES[a + 3] + _WEDGE6_NODES[b + 3]) / 2 for a, b in _WEDGE_TRI_EDGES]
+                           + [(_WEDGE6_NODES[a] + _WEDGE6_NODES[a + 3]) / 2 for a in range(3)])
+_DL_TRI = np.array([[-1, -1], [1, 0], [0, 1]], dtype=float)      # dL_i/d(g, h)
+#: C3D15's mid-edge nodes 7-15 (0-based corners): the lower triangle's edges, the upper's, the sides.
+_WEDGE15_EDGES = [(0, 1), (1, 2), (2, 0), (3, 4), (4, 5), (5, 3), (0, 3), (1, 4), (2, 5)]
+
+
+def _wedge_parts(xi):
+    xi = np.atleast_2d(xi)
+    L = np.column_stack([1.0 - xi[:, 0] - xi[:, 1], xi[:, 0], xi[:, 1]])
+    return L, xi[:, 2]
+
+
+def _wedge6(xi):
+    L, r = _wedge_parts(xi)
+    return np.column_stack([L * (0.5 * (1 - r))[:, None], L * (0.5 * (1 + r))[:, None]])
+
+
+def _wedge6_d(xi):
+    L, r = _wedge_parts(xi)
+    d = np.empty((len(L), 6, 3))
+    for k, sgn in ((0, -1.0), (3, 1.0)):
+        d[:, k:k + 3, :2] = _DL_TRI[None] * (0.5 * (1 + sgn * r))[:, None, None]
+        d[:, k:k + 3, 2] = 0.5 * sgn * L
+    return d
+
+
+def _wedge15(xi):
+    L, r = _wedge_parts(xi)
+    lo, hi, b = (1 - r)[:, None], (1 + r)[:, None], (1 - r * r)[:, None]
+    corner = 0.5 * L * (2 * L - 1)
+    tri = np.column_stack([2 * L[:, a] * L[:, c] for a, c in _WEDGE_TRI_EDGES])
+    return np.column_stack([corner * lo - 0.5 * L * b, corner * hi - 0.5 * L * b, tri * lo, tri * hi, L * b])
+
+
+def _wedge15_d(xi):
+    L, r = _wedge_parts(xi)
+    m = len(L)
+    lo, hi, b = 1 - r, 1 + r, 1 - r * r
+    d = np.empty((m, 15, 3))
+    dcorner = 0.5 * (4 * L - 1)                                    # d[L (2L - 1) / 2]/dL
+    corner = 0.5 * L * (2 * L - 1)
+    for i in range(3):
+        for k, f, df in ((i, lo, -1.0), (i + 3, hi, 1.0)):
+            d[:, k, :2] = (dcorner[:, i] * f - 0.5 * b)[:, None] * _DL_TRI[i]
+            d[:, k, 2] = df * corner[:, i] + L[:, i] * r
+        d[:, 12 + i, :2] = b[:, None] * _DL_TRI[i]
+        d[:, 12 + i, 2] = -2 * r * L[:, i]
+    for j, (a, c) in enumerate(_WEDGE_TRI_EDGES):
+        g = 2 * (L[:, a, None] * _DL_TRI[c] + L[:, c, None] * _DL_TRI[a])
+        t = 2 * L[:, a] * L[:, c]
+        d[:, 6 + j, :2], d[:, 6 + j, 2] = g * lo[:, None], -t
+        d[:, 9 + j, :2], d[:, 9 + j, 2] = g * hi[:, None], t
+    return d
+
+
+def _wedge_contains(xi, tol):
+    return (xi[:, 0] >= -tol) & (xi[:, 1] >= -tol) & (xi[:, 0] + xi[:, 1] <= 1.0 + tol) & (np.abs(xi[:, 2]) <= 1.0 + tol)
+
+
+def _wedge_clamp(xi):
+    out = np.empty_like(xi)
+    out[:, :2] = _tri_clamp(xi[:, :2])
+    out[:, 2] = np.clip(xi[:, 2], -1.0, 1.0)
+    return out
+
+
+def _tri_clamp(gh):
+    """Nearest point of the reference triangle {g, h >= 0, g + h <= 1} (Euclidean)."""
+    out = np.clip(gh, 0.0, None)
+    over = out.sum(axis=1) > 1.0
+    if np.any(over):
+        v = gh[over]
+        t = (v.sum(axis=1) - 1.0) / 2.0
+        out[over] = np.clip(v - t[:, None], 0.0, 1.0)
+        out[over] /= np.maximum(out[over].sum(axis=1), 1.0)[:, None]
+    return out
+
+
 def _hex_contains(xi, tol):
     return np.all(np.abs(xi) <= 1.0 + tol, axis=1)
 
@@ -174,12 +265,12 @@ class ElementType:
     def contains(self, xi, tol: float = 1e-8) -> np.ndarray:
         """Whether natural coordinates ``xi`` (m, 3) lie in the reference element (within ``tol``)."""
         xi = np.atleast_2d(xi)
-        return _hex_contains(xi, tol) if self.family == "hex" else _tet_contains(xi, tol)
+        return {"hex": _hex_contains, "tet": _tet_contains, "wedge": _wedge_contains}[self.family](xi, tol)
 
     def clamp(self, xi) -> np.ndarray:
         """The nearest natural coordinates inside the reference element."""
         xi = np.atleast_2d(np.asarray(xi, dtype=float))
-        return _hex_clamp(xi) if self.family == "hex" else _tet_clamp(xi)
+        return {"hex": _hex_clamp, "tet": _tet_clamp, "wedge": _wedge_clamp}[self.family](xi)
 
 
 ELEMENTS: dict[str, ElementType] = {
@@ -187,10 +278,14 @@ ELEMENTS: dict[str, ElementType] = {
     "C3D10": ElementType("C3D10", 10, "tet", _TET10_NODES, np.full(3, 0.25), _tet10, _tet10_d, 2),
     "C3D8": ElementType("C3D8", 8, "hex", _HEX8_NODES, np.zeros(3), _hex8, _hex8_d, 1),
     "C3D20": ElementType("C3D20", 20, "hex", _HEX20_NODES, np.zeros(3), _hex20, _hex20_d, 2),
+    "C3D6": ElementType("C3D6", 6, "wedge", _WEDGE6_NODES, np.array([1 / 3, 1 / 3, 0.0]), _wedge6, _wedge6_d, 1),
+    "C3D15": ElementType("C3D15", 15, "wedge", _WEDGE15_NODES, np.array([1 / 3, 1 / 3, 0.0]), _wedge15, _wedge15_d,
+                         2),
 }
 
 #: meshio cell type -> element name (same node order).
-MESHIO_TO_ABAQUS = {"tetra": "C3D4", "tetra10": "C3D10", "hexahedron": "C3D8", "hexahedron20": "C3D20"}
+MESHIO_TO_ABAQUS = {"tetra": "C3D4", "tetra10": "C3D10", "hexahedron": "C3D8", "hexahedron20": "C3D20",
+                    "wedge": "C3D6", "wedge15": "C3D15"}
 
 
 _ABAQUS_SUFFIXES = set("RHIMTPS")
@@ -203,13 +298,13 @@ def element_type(name: str) -> ElementType:
     ('C3D8', 'C3D10')
     """
     key = MESHIO_TO_ABAQUS.get(name, name).upper()
-    for base in ("C3D20", "C3D10", "C3D8", "C3D4"):
+    for base in ("C3D20", "C3D15", "C3D10", "C3D8", "C3D6", "C3D4"):
         # C3D8R, C3D8H, C3D8I, C3D10M, C3D20R, C3D8RT, ...: same nodes, same interpolation
         # (ABAQUS's suffixes: Reduced integration, Hybrid, Incompatible modes, Modified,
         # Temperature, Pore pressure, S for C3D10HS); another letter is no ABAQUS element
         if key == base or (key.startswith(base) and set(key[len(base):]) <= _ABAQUS_SUFFIXES and key[len(base):]):
             return ELEMENTS[base]
-    raise KeyError(f"element type {name!r} is not supported (C3D4, C3D10, C3D8, C3D20 and variants)")
+    raise KeyError(f"element type {name!r} is not supported (C3D4, C3D10, C3D6, C3D15, C3D8, C3D20 and variants)")
 
 
 def shape_functions(name: str, xi) -> np.ndarray:
@@ -286,7 +381,8 @@ def nearest_point(et: ElementType, nodes_xyz, x, xi0=None) -> tuple[np.ndarray, 
     """The point of one element nearest to ``x`` (3,): its natural coordinates and distance.
 
     Minimises :math:`|\\mathbf x(\\boldsymbol\\xi) - \\mathbf x|^2` over the reference element
-    (bounds for the cube, L-BFGS-B; the simplex's constraint for the tetrahedron, SLSQP) from
+    (bounds for the cube, L-BFGS-B; the simplex's or the triangle's constraint for the tetrahedron
+    and the wedge, SLSQP) from
     ``xi0`` (default the centre), with the exact gradient :math:`2 J^T r`; the start is kept if
     the search ends farther.  Exact for the affine C3D4 (a quadratic problem), to the solver's
     tolerance for curved elements (a local minimum of a strongly curved face is possible).
@@ -309,8 +405,12 @@ def nearest_point(et: ElementType, nodes_xyz, x, xi0=None) -> tuple[np.ndarray, 
         res = minimize(f, xi0, jac=True, method="L-BFGS-B", bounds=[(-1.0, 1.0)] * 3,
                        options={"ftol": 1e-15, "gtol": 1e-12, "maxiter": 200})
     else:
-        res = minimize(f, xi0, jac=True, method="SLSQP", bounds=[(0.0, 1.0)] * 3,
-                       constraints=[{"type": "ineq", "fun": lambda z: 1.0 - z.sum(), "jac": lambda z: -np.ones(3)}],
+        # the tetrahedron's simplex, or the wedge's triangle (its third coordinate a bound)
+        wedge = et.family == "wedge"
+        lead = np.array([1.0, 1.0, 0.0 if wedge else 1.0])
+        res = minimize(f, xi0, jac=True, method="SLSQP",
+                       bounds=[(0.0, 1.0), (0.0, 1.0), (-1.0, 1.0) if wedge else (0.0, 1.0)],
+                       constraints=[{"type": "ineq", "fun": lambda z: 1.0 - lead @ z, "jac": lambda z: -lead}],
                        options={"ftol": 1e-16, "maxiter": 200})
     best = et.clamp(res.x)[0]
     d_best, d0 = dist(best), dist(xi0)

@@ -1,11 +1,13 @@
 """FE meshes and nodal displacement results, as ``bsipipe compare`` reads them.
 
 Meshes
-    ABAQUS / CalculiX input (``.inp``): ``*NODE`` and ``*ELEMENT, TYPE=C3D4 | C3D10 | C3D8 |
-    C3D20`` (and their variants: ``C3D8R``, ``C3D10M``, ...), ``*INCLUDE`` followed; other
-    element types (springs, shells, ...) are counted and skipped.  Any other format through
-    meshio (``tetra``, ``tetra10``, ``hexahedron``, ``hexahedron20`` cells); its nodes are
-    numbered 1..n in file order.
+    ABAQUS / CalculiX input (``.inp``): ``*NODE`` (and ``*NGEN``) and ``*ELEMENT, TYPE=C3D4 |
+    C3D10 | C3D6 | C3D15 | C3D8 | C3D20`` (and their variants: ``C3D8R``, ``C3D10M``, ...),
+    ``*INCLUDE`` followed, keyword lines continued after a comma; other element types
+    (springs, shells, ...) are counted and skipped; keywords that generate nodes or elements
+    otherwise (``*NFILL``, ``*ELGEN``, ...) are refused.  Any other format through meshio
+    (``tetra``, ``tetra10``, ``wedge``, ``wedge15``, ``hexahedron``, ``hexahedron20`` cells);
+    its nodes are numbered 1..n in file order.
 Displacements
     - CSV ``node,ux_mm,uy_mm,uz_mm`` (an optional ``time_s`` or ``step`` column holds several
       results; the last is taken unless one is chosen);
@@ -23,6 +25,7 @@ Errors name the file and, where it applies, the line.
 from __future__ import annotations
 
 import csv
+import logging
 import os
 import re
 from dataclasses import dataclass, field
@@ -31,6 +34,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+
+log = logging.getLogger(__name__)
 
 __all__ = ["CellBlock", "FEMesh", "NodalDisplacements", "read_mesh", "read_abaqus_mesh",
            "read_displacements", "read_displacement_csv", "read_abaqus_report", "read_ccx_dat",
@@ -42,7 +47,7 @@ LENGTH_UNITS = {"mm": 1.0, "m": 1000.0}
 
 @dataclass
 class CellBlock:
-    """Elements of one type: ``element_type`` (C3D4, C3D10, C3D8, C3D20), ``type_as_written``,
+    """Elements of one type: ``element_type`` (C3D4, C3D10, C3D6, C3D15, C3D8, C3D20), ``type_as_written``,
     ``element_ids`` (ne,), ``connectivity`` (ne, n): 0-based indices into the mesh's nodes."""
 
     element_type: str
@@ -129,6 +134,10 @@ def _choose(results: list, choose: int | None, path, what: str):
 
 # --- ABAQUS input -------------------------------------------------------------------------------
 
+#: ABAQUS keywords that generate nodes or elements compare does not generate.
+_GENERATED = {"NFILL": "nodes", "NCOPY": "nodes", "NMAP": "node coordinates", "ELGEN": "elements",
+              "ELCOPY": "elements"}
+
 def _keyword(line: str) -> tuple[str, dict[str, str]]:
     parts = [p.strip() for p in line[1:].split(",")]
     params = {}
@@ -148,9 +157,22 @@ def _inp_lines(path, seen=None):
     if key in seen:
         raise InputError("*INCLUDE loop", path=path)
     seen = seen | {key}
-    for no, raw in enumerate(_read_lines(path), start=1):
+    lines = _read_lines(path)
+    i = 0
+    while i < len(lines):
+        no, raw = i + 1, lines[i]
+        i += 1
         s = raw.strip()
         if s.startswith("*") and not s.startswith("**"):
+            # a keyword line ending in a comma continues on the next line (ABAQUS's rule):
+            # "*ELEMENT, TYPE=C3D8," then "ELSET=E" had been read as a node line
+            while s.endswith(",") and i < len(lines):
+                nxt = lines[i].strip()
+                i += 1
+                if not nxt or nxt.startswith("**"):
+                    continue
+                s = s + " " + nxt
+            raw = s
             kw, params = _keyword(s)
             if kw == "INCLUDE":
                 inc = params.get("INPUT")
@@ -184,6 +206,7 @@ def read_abaqus_mesh(path, *, length_unit: str = "mm") -> FEMesh:
     node_part: list = []        # each node's part (None outside parts)
     instances: dict = {}        # part -> [(instance name, data lines, (file, line))]
     inst = None                 # the *INSTANCE being read: its positioning lines
+    assembly_nodes: list = []   # nodes of the assembly (after an *INSTANCE, outside parts): left out
 
     def flush_element():
         nonlocal pending, pending_at
@@ -228,6 +251,18 @@ def read_abaqus_mesh(path, *, length_unit: str = "mm") -> FEMesh:
                 continue
             elif kw == "END INSTANCE":
                 inst = None
+            if kw in _GENERATED:
+                # nodes or elements the solver generates: had been skipped unsaid, every marker
+                # then "outside the mesh"
+                raise InputError(f"*{kw} generates {_GENERATED[kw]}, which compare does not do: write them out "
+                                 "(Abaqus/CAE and most preprocessors do; in Abaqus, the .inp of a datacheck run)",
+                                 path=f, line=no)
+            if kw == "NGEN":
+                if params.get("LINE", "L").upper() not in ("L", ""):
+                    raise InputError(f"*NGEN, LINE={params['LINE']} is not supported (straight lines only)",
+                                     path=f, line=no)
+                mode = "ngen"
+                continue
             if kw == "NODE":
                 if params.get("SYSTEM", "R").upper() not in ("R", ""):
                     raise InputError(f"*NODE, SYSTEM={params['SYSTEM']} is not supported (rectangular only)",
@@ -244,6 +279,29 @@ def read_abaqus_mesh(path, *, length_unit: str = "mm") -> FEMesh:
                     etype = None
                     skipped.setdefault(written, 0)
             continue
+        if mode == "ngen":
+            try:
+                a, b, *inc = [int(v) for v in s.split(",") if v.strip() != ""][:3]
+            except ValueError:
+                raise InputError(f"an *NGEN line needs 'first, last[, increment]', got {s!r}", path=f, line=no) from None
+            step = inc[0] if inc and inc[0] else 1
+            for end in (a, b):
+                if end not in where_node:
+                    raise InputError(f"*NGEN from node {a} to {b}: node {end} is not defined before", path=f, line=no)
+            if step <= 0 or (b - a) % step:
+                raise InputError(f"*NGEN from node {a} to {b} by {step}: not a whole number of steps", path=f, line=no)
+            pa, pb = np.array(xyz[ids.index(a)]), np.array(xyz[ids.index(b)])
+            n = (b - a) // step
+            for k in range(1, n):
+                nid = a + k * step
+                if nid in where_node:
+                    raise InputError(f"node {nid} defined twice (also {where_node[nid][0]} line "
+                                     f"{where_node[nid][1]}), here by *NGEN", path=f, line=no)
+                where_node[nid] = (f, no)
+                ids.append(nid)
+                xyz.append(list(pa + (pb - pa) * k / n))
+                node_part.append(part)
+            continue
         if mode == "node":
             parts = [p for p in (v.strip() for v in s.split(",")) if p != ""]
             try:
@@ -253,6 +311,12 @@ def read_abaqus_mesh(path, *, length_unit: str = "mm") -> FEMesh:
                 raise InputError(f"a node line needs 'id, x, y[, z]', got {s!r}", path=f, line=no) from None
             if len(c) < 2:
                 raise InputError(f"a node line needs 'id, x, y[, z]', got {s!r}", path=f, line=no)
+            if part is None and instances:
+                # a node of the assembly (Abaqus/CAE writes a rigid indentor's reference point
+                # there): its own namespace, no solid element's; it had clashed with a part's
+                # node of the same label ("node 1 defined twice")
+                assembly_nodes.append(nid)
+                continue
             if nid in where_node:
                 raise InputError(f"node {nid} defined twice (also {where_node[nid][0]} line {where_node[nid][1]}); "
                                  f"several parts or instances are not supported", path=f, line=no)
@@ -280,6 +344,9 @@ def read_abaqus_mesh(path, *, length_unit: str = "mm") -> FEMesh:
         flush_element()
     if not ids:
         raise InputError("no *NODE data in the deck", path=path)
+    if assembly_nodes:
+        log.info("%s: %d node(s) of the assembly (reference points) left out: %s", path, len(assembly_nodes),
+                 ", ".join(str(n) for n in assembly_nodes[:5]))
     xyz = _instances_placed(np.array(xyz, dtype=float), node_part, instances, path)
     node_ids = np.array(ids, dtype=np.int64)
     order = {n: i for i, n in enumerate(ids)}
@@ -294,7 +361,7 @@ def read_abaqus_mesh(path, *, length_unit: str = "mm") -> FEMesh:
                 idx[r, c] = order[nid]
         blocks.append(CellBlock(base, "/".join(sorted(wr)), np.array(eids, dtype=np.int64), idx))
     if not blocks:
-        raise InputError("no solid elements (C3D4, C3D10, C3D8, C3D20) in the deck"
+        raise InputError("no solid elements (C3D4, C3D10, C3D6, C3D15, C3D8, C3D20) in the deck"
                          + (f"; found {', '.join(sorted(skipped))}" if skipped else ""), path=path)
     return FEMesh(str(path), "abaqus", node_ids, xyz * factor, blocks, skipped)
 
@@ -374,7 +441,7 @@ def read_mesh(path, *, length_unit: str = "mm") -> FEMesh:
             skipped[cb.type] = skipped.get(cb.type, 0) + len(cb.data)
         next_id += len(cb.data)
     if not blocks:
-        raise InputError("no solid cells (tetra, tetra10, hexahedron, hexahedron20) in the mesh"
+        raise InputError("no solid cells (tetra, tetra10, wedge, wedge15, hexahedron, hexahedron20) in the mesh"
                          + (f"; found {', '.join(sorted(skipped))}" if skipped else ""), path=path)
     return FEMesh(str(path), "meshio", np.arange(1, len(pts) + 1), pts * _unit_factor(length_unit),
                   blocks, skipped)
