@@ -481,6 +481,35 @@ def test_calculix_results_cut_off_are_invalid_input(tmp_path):
         read_ccx_dat(dat)
 
 
+def test_results_cut_at_a_line_or_block_edge_are_invalid_input(tmp_path):
+    """A report cut inside its last table at a line's end, and a .dat cut just before the last
+    time's block of one of its sets: the report had been read with the rows it had (a table cut
+    at 30 % gave 1 marker of 8 and sigma from it, exit 0), the .dat as a result of another mesh
+    ("933 of the mesh's 942 nodes have no displacement").  Both are InputErrors saying the file
+    was cut off; the whole files read."""
+    from bsipipe.io.fe_results import read_abaqus_report
+    ids = np.arange(1, 21)
+    u = np.column_stack([ids * 0.01, np.zeros(20), np.zeros(20)])
+    rpt = tmp_path / "u.rpt"
+    write_rpt(rpt, ids, u)
+    assert read_abaqus_report(rpt).n_results == 2
+    lines = rpt.read_text().splitlines()
+    dashes = [k for k, ln in enumerate(lines) if ln.startswith("-" * 60)]
+    rpt.write_text("\n".join(lines[:dashes[-1] + 1 + 6]) + "\n")        # 6 of the last table's 20 rows
+    with pytest.raises(InputError, match=r"ends inside its last table .*6 rows, the part's earlier tables 20"):
+        read_abaqus_report(rpt)
+    def block(name, t, n):
+        return _dat_text(n, times=(t,)).replace("set NALL", f"set {name}")
+
+    dat = tmp_path / "job.dat"
+    head = block("NALL", 0.5, 10) + block("MARKERS", 0.5, 4) + block("NALL", 1.0, 10)
+    dat.write_text(head)                                   # cut before time 1's MARKERS block
+    with pytest.raises(InputError, match=r"last time \(1\) has no displacement block for set\(s\) MARKERS"):
+        read_ccx_dat(dat)
+    dat.write_text(head + block("MARKERS", 1.0, 4))
+    assert read_ccx_dat(dat).n_results == 2
+
+
 def _rpt_two_parts(path, ids_a, ids_b, frames=((0.5, 0.5), (1.0, 1.0))):
     """Abaqus/CAE's report of a model of two part instances: per frame a table for BRAIN-1,
     then one for INDENTOR-1 (u of node k = (k, 0, 0) times the frame's scale)."""

@@ -554,6 +554,7 @@ def read_abaqus_report(path, *, choose: int | None = None, length_unit: str = "m
     """
     lines = _read_lines(path)
     results = []
+    endings: list[bool] = []           # each table ended by a blank line or summary rows
     step = frame = part = None
     i = 0
     while i < len(lines):
@@ -580,14 +581,17 @@ def read_abaqus_report(path, *, choose: int | None = None, length_unit: str = "m
                                      f"report U at nodes for a 3-D model", path=path, line=head_no)
                 comps.append(names.index(c))
             ids, vals, inst = [], [], set()
+            ended = False                     # by a blank line or the summary rows, not the file's end
             while i < len(lines):
                 row = lines[i].split()
                 if not row:
                     if ids:
+                        ended = True
                         break
                     i += 1
                     continue
                 if row[0] in ("Minimum", "Maximum", "Total", "At"):
+                    ended = True
                     break
                 label = row[0]
                 if "." in label:
@@ -614,8 +618,20 @@ def read_abaqus_report(path, *, choose: int | None = None, length_unit: str = "m
                     t = None
             desc = f"step {step}, frame {frame}" if step or frame else f"table at line {head_no}"
             results.append((desc, t, np.array(ids, dtype=np.int64), np.array(vals, dtype=float), part, head_no))
+            endings.append(ended)
             continue
         i += 1
+    if results and not endings[-1]:
+        # the file ends inside its last table: cut off where the other tables end properly or
+        # hold more rows for the same part (a table cut at 30 % had given 1 marker of 8, exit 0)
+        last = results[-1]
+        same = [len(r[2]) for r in results[:-1] if r[4] == last[4]]
+        if any(endings[:-1]) or (same and len(last[2]) < max(same)):
+            more = f", the part's earlier tables {max(same)}" if same else ""
+            raise InputError(f"the report ends inside its last table ({last[0]}: {len(last[2])} rows{more}), "
+                             "without the blank line and summary rows the others end with: the file was cut off "
+                             "(a report written while the job ran, or a copy cut short)", path=path,
+                             line=len(lines))
     results = _rpt_parts_merged(results, path)
 
     def build(r) -> NodalDisplacements:
@@ -658,6 +674,16 @@ def read_ccx_dat(path, *, choose: int | None = None, length_unit: str = "mm") ->
             raise InputError(f"the last displacement block (set {last.set_name}, time {last.time:g}) holds "
                              f"{len(last.ids)} nodes, the set's earlier ones {min(before)}: the file was cut off "
                              "(a run stopped while writing, or a copy cut short)", path=path)
+        # cut at a block's edge: the last time lacks a set every earlier time printed (it had
+        # read as a result of another mesh, "933 of the mesh's 942 nodes have no displacement")
+        sets_at = {t: {b.set_name for b in blocks if b.time == t} for t in times}
+        if len(times) > 1:
+            every = set.intersection(*(sets_at[t] for t in times[:-1]))
+            gone = sorted(every - sets_at[times[-1]])
+            if gone:
+                raise InputError(f"the last time ({times[-1]:g}) has no displacement block for set(s) "
+                                 f"{', '.join(gone)}, which every earlier time has: the file was cut off (a run "
+                                 "stopped while writing, or a copy cut short)", path=path)
 
     def build(t: float) -> NodalDisplacements:
         merged: dict[int, np.ndarray] = {}
