@@ -720,3 +720,26 @@ def test_an_axis_with_its_sign_turned_is_warned():
     assert _axis_sign_warning(meas * 0.7 + 0.1, meas) is None           # a stiffer model: no word
     assert "x displacements" in _axis_sign_warning(meas * [-1.0, 1.0, 1.0], meas)
     assert _axis_sign_warning(meas * [1.0, -1.0, 1.0], meas) is None     # y carries too little to tell
+
+
+def test_float32_meshio_results_at_ct_coordinates_and_damaged_files(tmp_path):
+    """A VTU result whose points are float32, 850 mm from the origin (a CT frame's): rounded to
+    3e-5 mm, finer than the position match's 1e-6 of the mesh diagonal, 18 of 120 nodes had
+    gone unmatched and the mesh was blamed (exit 2).  The match allows the stored precision.  A
+    damaged VTU had exited 1 with meshio's bare message (it calls sys.exit): exit 2 naming it."""
+    import meshio
+    coords, conn = brick_hex(4, 3, 3, size=SIZE)
+    coords = coords + np.array([-120.0, 210.0, -850.0])
+    write_inp(tmp_path / "mesh.inp", coords, [("C3D8", conn)])
+    u = linear_field(coords - coords.mean(axis=0))
+    vtu = tmp_path / "u.vtu"
+    meshio.write(vtu, meshio.Mesh(coords.astype(np.float32), [("hexahedron", conn)], point_data={"U": u}))
+    mesh = read_mesh(tmp_path / "mesh.inp")
+    nodal, info = displacements_on_mesh(mesh, read_displacements(vtu))
+    assert info["n_matched"] == len(coords) and np.isfinite(nodal).all()
+    vtu.write_bytes(vtu.read_bytes()[:200])
+    X = coords.mean(axis=0)[None] + 0.5
+    write_markers_ct(tmp_path / "m.csv", ["M1"], X, np.zeros((1, 3)))
+    r = _invoke("compare", "--fe-displacements", vtu, "--mesh", tmp_path / "mesh.inp", "--markers",
+                tmp_path / "m.csv", "-o", tmp_path / "out")
+    assert r.exit_code == 2 and "u.vtu" in r.output and "meshio cannot read the file" in r.output, r.output

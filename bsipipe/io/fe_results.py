@@ -101,6 +101,7 @@ class NodalDisplacements:
     time: float | None = None
     n_results: int = 1
     results: list[str] = field(default_factory=list)
+    coords_resolution_mm: float = 0.0     # the spacing of ``coords_mm``'s stored numbers (float32 files)
 
 
 def _unit_factor(length_unit: str) -> float:
@@ -418,6 +419,9 @@ def _read_meshio(path):
         raise InputError("file not found", path=path) from None
     except Exception as e:   # meshio raises many kinds of errors for unreadable files
         raise InputError(f"meshio cannot read the file: {type(e).__name__}: {e}", path=path) from None
+    except SystemExit as e:  # and some of its readers call sys.exit (a cut VTU: exit 1, "Couldn't read file")
+        raise InputError(f"meshio cannot read the file (damaged, cut off, or not the format its suffix says)"
+                         + (f": {e.code}" if isinstance(e.code, str) else ""), path=path) from None
 
 
 def read_mesh(path, *, length_unit: str = "mm") -> FEMesh:
@@ -809,10 +813,16 @@ def read_meshio_displacements(path, *, length_unit: str = "mm") -> NodalDisplace
                 if v.shape[1] == 2:
                     v = np.column_stack([v, np.zeros(len(v))])
                 f = _unit_factor(length_unit)
-                pts = np.asarray(m.points, dtype=float)
+                raw = np.asarray(m.points)
+                pts = raw.astype(float)
                 if pts.shape[1] == 2:
                     pts = np.column_stack([pts, np.zeros(len(pts))])
-                return NodalDisplacements(str(path), "meshio", None, v[:, :3] * f, pts * f, f"point data {k!r}")
+                # coordinates stored as float32 are rounded to 6e-8 of their size (3e-5 mm at
+                # 850 mm, a CT frame's): matching them to the mesh must allow that
+                eps = float(np.finfo(raw.dtype).eps) if np.issubdtype(raw.dtype, np.floating) else 0.0
+                res = eps * float(np.abs(pts).max()) * f if len(pts) else 0.0
+                return NodalDisplacements(str(path), "meshio", None, v[:, :3] * f, pts * f, f"point data {k!r}",
+                                          coords_resolution_mm=res)
     raise InputError(f"no displacement point data (looked for {', '.join(_MESHIO_KEYS)}, any case); "
                      f"found: {', '.join(m.point_data) or 'none'}", path=path)
 
@@ -842,7 +852,8 @@ def displacements_on_mesh(mesh: FEMesh, disp: NodalDisplacements, *, match_tol_m
     """Displacements (n_nodes, 3) in the mesh's node order, NaN where the result has none.
 
     Labels are matched where the result has them; a meshio result (no labels) is matched by
-    node position within ``match_tol_mm`` (default 1e-6 of the mesh's bounding-box diagonal).
+    node position within ``match_tol_mm`` (default 1e-6 of the mesh's bounding-box diagonal, or
+    4 times the spacing of the result's stored coordinates where that is larger: float32).
     Returns ``(u, info)`` with ``info`` = ``{"matched_by", "n_matched", "n_unmatched_result_nodes"}``.
     """
     n = len(mesh.node_ids)
@@ -857,7 +868,7 @@ def displacements_on_mesh(mesh: FEMesh, disp: NodalDisplacements, *, match_tol_m
     from scipy.spatial import cKDTree
 
     diag = float(np.linalg.norm(np.ptp(mesh.coords_mm, axis=0)))
-    tol = 1e-6 * diag if match_tol_mm is None else match_tol_mm
+    tol = max(1e-6 * diag, 4.0 * disp.coords_resolution_mm) if match_tol_mm is None else match_tol_mm
     d, j = cKDTree(disp.coords_mm).query(mesh.coords_mm, distance_upper_bound=tol)
     ok = np.isfinite(d)
     u[ok] = disp.u_mm[j[ok]]
