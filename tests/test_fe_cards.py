@@ -178,6 +178,9 @@ def test_explicit_d1_and_bulk_modulus():
 @pytest.mark.parametrize("bad, match", [
     ({"mu_pa": 720.0}, "needs parameters"),
     ({"mu_pa": -1.0, "alpha": 2.0}, "must be positive"),
+    # Infinity (Python's json writes inf so) had reached the writers: "nan cannot be written", exit 1
+    ({"mu_pa": float("inf"), "alpha": -4.7}, "must be finite numbers, got mu_pa = inf"),
+    ({"mu_pa": 720.0, "alpha": float("nan")}, "must be finite numbers, got alpha = nan"),
 ])
 def test_bad_parameters_rejected(bad, match):
     with pytest.raises(ValueError, match=match):

@@ -199,7 +199,14 @@ def prepare_material(
         if vec.shape != (len(law.param_names),):
             raise ValueError(f"model {law_name!r} takes {len(law.param_names)} parameters "
                              f"{law.param_names}, got {vec.size}")
+    if not np.all(np.isfinite(vec)):
+        # Infinity (what Python's json writes for inf) had reached the deck writer: "internal
+        # error: nan cannot be written in a keyword field", exit 1
+        bad = [f"{n} = {v}" for n, v in zip(law.param_names, vec) if not np.isfinite(v)]
+        raise ValueError(f"model {law_name!r}: parameters must be finite numbers, got {', '.join(bad)}")
     terms = _prony_terms(prony)
+    if not all(np.isfinite(g) and np.isfinite(t) for g, t in terms):
+        raise ValueError(f"Prony terms must be finite numbers, got {terms}")
     g_sum = sum(g for g, _ in terms)
     if _check_moduli(params_moduli) == "long-term":
         vec = vec.copy()
