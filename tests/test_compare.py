@@ -743,3 +743,17 @@ def test_float32_meshio_results_at_ct_coordinates_and_damaged_files(tmp_path):
     r = _invoke("compare", "--fe-displacements", vtu, "--mesh", tmp_path / "mesh.inp", "--markers",
                 tmp_path / "m.csv", "-o", tmp_path / "out")
     assert r.exit_code == 2 and "u.vtu" in r.output and "meshio cannot read the file" in r.output, r.output
+
+
+def test_displacement_csv_as_spreadsheets_write_it(tmp_path):
+    """Excel's "CSV UTF-8" (a byte-order mark before the header) had given "missing column(s)
+    node" under a header that shows it, and labels written 601.0 (pandas' float column) "node
+    is not a number: '1.0'".  Both read; a label that is no whole number is refused naming it."""
+    from bsipipe.io.fe_results import read_displacement_csv
+    p = tmp_path / "u.csv"
+    p.write_bytes("\ufeffnode,ux_mm,uy_mm,uz_mm\r\n1.0,0.1,0.2,0.3\r\n2.0,0.4,0.5,0.6\r\n".encode("utf-8"))
+    r = read_displacement_csv(p)
+    assert r.node_ids.tolist() == [1, 2] and r.u_mm[1].tolist() == [0.4, 0.5, 0.6]
+    p.write_text("node,ux_mm,uy_mm,uz_mm\n1.5,0,0,0\n")
+    with pytest.raises(InputError, match=r"line 2: node is not a node label \(a whole number\): '1.5'"):
+        read_displacement_csv(p)

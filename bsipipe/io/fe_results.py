@@ -113,7 +113,9 @@ def _unit_factor(length_unit: str) -> float:
 
 def _read_lines(path) -> list[str]:
     try:
-        return Path(path).read_text(encoding="utf-8", errors="replace").splitlines()
+        # utf-8-sig: Excel's "CSV UTF-8" starts with a byte-order mark, which had made the
+        # first column "\ufeffnode" ("missing column(s) node" under a header that shows it)
+        return Path(path).read_text(encoding="utf-8-sig", errors="replace").splitlines()
     except FileNotFoundError:
         raise InputError("file not found", path=path) from None
     except OSError as e:
@@ -480,9 +482,10 @@ def read_displacement_csv(path, *, choose: int | None = None, length_unit: str =
         for c in data:
             v = r[cols.index(c)].strip()
             try:
-                data[c].append(int(v) if c == "node" else float(v))
+                data[c].append(_label(v) if c == "node" else float(v))
             except ValueError:
-                raise InputError(f"{c} is not a number: {v!r}", path=path, line=no) from None
+                what = "a node label (a whole number)" if c == "node" else "a number"
+                raise InputError(f"{c} is not {what}: {v!r}", path=path, line=no) from None
     df = pd.DataFrame(data)
     if df.empty:
         raise InputError("no data rows", path=path)
@@ -502,6 +505,17 @@ def read_displacement_csv(path, *, choose: int | None = None, length_unit: str =
     if choose == "all":
         return [build(k) for k in range(len(groups))]
     return build(_choose(list(range(len(groups))), choose, path, "results"))
+
+
+def _label(v: str) -> int:
+    """A node label as a spreadsheet or pandas may write it: ``601`` or ``601.0``."""
+    try:
+        return int(v)
+    except ValueError:
+        f = float(v)
+        if not f.is_integer():
+            raise
+        return int(f)
 
 
 _RPT_FRAME = re.compile(r"Step Time\s*=\s*(\S+)")
