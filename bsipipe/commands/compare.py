@@ -98,7 +98,9 @@ def _units_hint(nodes_mm: np.ndarray, markers_mm: np.ndarray, length_unit: str) 
     for unit, mm in _UNIT_MM.items():
         k = mm / read_mm
         if unit != length_unit and inside(k) >= 0.5 > inside(1.0):
-            hint = "--length-unit m" if unit == "m" else f"in {unit}, which compare does not read (mm or m)"
+            hint = ("--length-unit m, which reads the displacement file in metres too: one unit for both files; "
+                    "a mesh in metres with displacements in mm needs one of them converted"
+                    if unit == "m" else f"in {unit}, which compare does not read (mm or m)")
             return (f"its nodes span {span:.3g} {length_unit} while the markers lie about "
                     f"{float(np.median(np.linalg.norm(markers_mm - 0.5 * (lo + hi), axis=1))):.3g} mm from its centre; "
                     f"read as {unit} the mesh holds {100 * inside(k):.0f} % of them: its coordinates look like {unit} "
