@@ -757,3 +757,28 @@ def test_displacement_csv_as_spreadsheets_write_it(tmp_path):
     p.write_text("node,ux_mm,uy_mm,uz_mm\n1.5,0,0,0\n")
     with pytest.raises(InputError, match=r"line 2: node is not a node label \(a whole number\): '1.5'"):
         read_displacement_csv(p)
+
+
+def test_a_marker_in_an_element_type_compare_skips_is_not_only_outside(tmp_path):
+    """Half a mesh of 27-node bricks (C3D27, which compare does not interpolate): the markers in
+    them had been reported "outside the mesh"; the reason now names the skipped solid type."""
+    coords, conn = brick_hex(4, 2, 2, size=SIZE)
+    half = len(conn) // 2
+    X = np.array([coords[conn[0]].mean(axis=0), coords[conn[-1]].mean(axis=0)])
+    labels = np.arange(1, len(coords) + 1) + 100                  # write_inp's node labels
+
+    def c3d27(k, row):                                           # 16 entries a line at most
+        vals = [1000 + k] + [int(labels[n]) for n in row] + [int(labels[row[0]])] * 19
+        return ", ".join(map(str, vals[:16])) + ",\n" + ", ".join(map(str, vals[16:])) + "\n"
+
+    extra = "*ELEMENT, TYPE=C3D27\n" + "".join(c3d27(k, row) for k, row in enumerate(conn[:half]))
+    ids = write_inp(tmp_path / "mesh.inp", coords, [("C3D8", conn[half:])], extra=extra)
+    write_disp_csv(tmp_path / "u.csv", ids, linear_field(coords))
+    write_markers_ct(tmp_path / "m.csv", ["IN_C3D27", "IN_C3D8"], X, linear_field(X))
+    r = _invoke("compare", "--fe-displacements", tmp_path / "u.csv", "--mesh", tmp_path / "mesh.inp",
+                "--markers", tmp_path / "m.csv", "-o", tmp_path / "out")
+    assert r.exit_code == 0, r.output
+    res = json.loads((tmp_path / "out" / "compare.json").read_text())
+    assert res["n_markers"] == 1
+    assert "solid elements compare does not interpolate" in res["skipped"]["IN_C3D27"]
+    assert "C3D27" in res["skipped"]["IN_C3D27"]

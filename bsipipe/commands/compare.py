@@ -267,6 +267,13 @@ def run(fe_displacements: str | os.PathLike, mesh: str | os.PathLike, markers: s
             skipped[n] = f"its element has a node without a displacement in {Path(fe_displacements).name}"
         else:
             keep.append(i)
+    solid_skipped = {t: c for t, c in fe_mesh.skipped.items() if t.upper().startswith("C3D")}
+    if solid_skipped and not loc.found.all():
+        # a marker in an element of a type compare does not interpolate reads as outside
+        what = ", ".join(f"{c} {t}" for t, c in sorted(solid_skipped.items()))
+        for i, n in enumerate(mf.names):
+            if not loc.found[i]:
+                skipped[n] += f", or inside one of the mesh's solid elements compare does not interpolate ({what})"
     if skipped:
         warnings.append("skipped " + "; ".join(f"{k}: {v}" for k, v in skipped.items()))
     if not keep:
