@@ -188,3 +188,21 @@ def test_interface_springs_uniform_or_by_tributary_area(tmp_path, lumping):
     if ccx_executable() is not None:
         run_ccx((out / "abaqus" / "model.inp").read_text(), jobname="model", keep_dir=tmp_path / "ccx")
         assert (tmp_path / "ccx" / "model.dat").stat().st_size > 0
+
+
+def test_node_set_from_an_element_set(tmp_path):
+    """``*NSET, NSET=S, ELSET=E`` (the nodes of E's elements), as Abaqus/CAE writes a surface's
+    nodes: it had read as an empty set, and export-fe said "node set INTERFACE is not in the
+    mesh (it has [..., 'INTERFACE', ...])".  Elements whose lines continue, ``*ELSET,
+    GENERATE`` and a keyword line continued after a comma are read."""
+    deck = tmp_path / "m.inp"
+    deck.write_text("*NODE\n" + "".join(f"{i}, {i}.0, 0.0, 0.0\n" for i in range(1, 31))
+                    + "*ELEMENT, TYPE=C3D20, ELSET=ALL\n"
+                    + "1, " + ", ".join(str(i) for i in range(1, 16)) + ",\n"
+                    + ", ".join(str(i) for i in range(16, 21)) + "\n"
+                    + "2, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21, 22, 23, 24, 25,\n26, 27, 28, 29, 30\n"
+                    + "*Elset, elset=SKIN, generate\n2, 2, 1\n*Nset, nset=INTERFACE,\n elset=SKIN\n"
+                    + "*Nset, nset=BOTH, elset=ALL\n")
+    sets = abaqus_node_sets(deck)
+    assert sets["INTERFACE"].tolist() == list(range(11, 31))
+    assert sets["BOTH"].tolist() == list(range(1, 31))

@@ -811,7 +811,8 @@ def build_handoff(cfg, *, fit: dict, transform, markers_ct: pd.DataFrame, log: L
         iface, indentor_set = cfg.mesh_sets.interface.upper(), cfg.mesh_sets.indentor.upper()
         for key, nm in (("mesh_sets.interface", iface), ("mesh_sets.indentor", indentor_set)):
             if nm not in mesh.nsets or not len(mesh.nsets[nm]):
-                raise HandoffError(f"node set {nm} is not in the mesh (it has {sorted(mesh.nsets)})", key=key,
+                why = "is empty" if nm in mesh.nsets else f"is not in the mesh (it has {sorted(mesh.nsets)})"
+                raise HandoffError(f"node set {nm} {why}", key=key,
                                    source="mesh")
         mesh.nsets["INDENTOR"] = mesh.nsets[indentor_set]
         mesh.nsets["INTERFACE"] = mesh.nsets[iface]

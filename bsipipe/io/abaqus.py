@@ -347,7 +347,8 @@ def abaqus_indentation_deck(*, comments: Sequence[str], node_ids, node_xyz, bloc
 def abaqus_node_sets(path) -> dict[str, np.ndarray]:
     """Node sets of an ABAQUS input file (``*INCLUDE`` followed): ``*NSET, NSET=name`` (plain
     lists or ``GENERATE`` triples ``first, last, step``; names of other sets expand to their
-    nodes) and ``*NODE, NSET=name``.  Names are upper case (ABAQUS is case-insensitive).
+    nodes; with ``ELSET=name``, the nodes of that element set's elements) and ``*NODE,
+    NSET=name``.  Names are upper case (ABAQUS is case-insensitive).
 
     Raises
     ------
@@ -358,7 +359,11 @@ def abaqus_node_sets(path) -> dict[str, np.ndarray]:
     from .fe_results import _inp_lines
 
     sets: dict[str, list[int]] = {}
+    elsets: dict[str, list[int]] = {}
+    elements: dict[int, list[int]] = {}     # element -> its nodes (every type)
+    from_elsets: list[tuple] = []            # (node set, element set, file, line): filled at the end
     mode, name, generate = None, None, False
+    elem: list[int] = []                     # the element being read (its line may continue)
     for f, no, raw in _inp_lines(path):
         line = raw.strip()
         if not line or line.startswith("**"):
@@ -370,13 +375,25 @@ def abaqus_node_sets(path) -> dict[str, np.ndarray]:
             for q in parts[1:]:
                 k, _, v = q.partition("=")
                 params[k.strip().upper()] = v.strip()
-            mode, name, generate = None, None, False
+            mode, name, generate, elem = None, None, False, []
             if kw == "NSET" and params.get("NSET"):
                 mode, name, generate = "nset", params["NSET"].upper(), "GENERATE" in params
                 sets.setdefault(name, [])
+                if params.get("ELSET"):
+                    # the nodes of an element set's elements (no data lines); it had read as
+                    # an empty set, "node set INTERFACE is not in the mesh (it has [INTERFACE])"
+                    from_elsets.append((name, params["ELSET"].upper(), f, no))
+                    mode = None
             elif kw == "NODE" and params.get("NSET"):
                 mode, name = "node", params["NSET"].upper()
                 sets.setdefault(name, [])
+            elif kw == "ELEMENT":
+                mode, name = "element", (params.get("ELSET") or "").upper() or None
+                if name:
+                    elsets.setdefault(name, [])
+            elif kw == "ELSET" and params.get("ELSET"):
+                mode, name, generate = "elset", params["ELSET"].upper(), "GENERATE" in params
+                elsets.setdefault(name, [])
             continue
         if mode == "node":
             head = line.split(",")[0].strip()
@@ -384,24 +401,42 @@ def abaqus_node_sets(path) -> dict[str, np.ndarray]:
                 sets[name].append(int(head))
             except ValueError:
                 raise InputError(f"a node line needs an integer id, got {head!r}", path=f, line=no) from None
-        elif mode == "nset":
+        elif mode == "element":
+            try:
+                vals = [int(v) for v in line.split(",") if v.strip()]
+            except ValueError:
+                raise InputError(f"element data must be integers, got {line!r}", path=f, line=no) from None
+            elem.extend(vals)
+            if not line.endswith(",") and len(vals) < 16 and elem:
+                elements[elem[0]] = elem[1:]
+                if name:
+                    elsets[name].append(elem[0])
+                elem = []
+        elif mode in ("nset", "elset"):
+            target = sets if mode == "nset" else elsets
             vals = [v.strip() for v in line.split(",") if v.strip()]
             if generate:
                 try:
                     a, b, *step = [int(v) for v in vals]
                 except ValueError:
-                    raise InputError("*NSET, GENERATE needs 'first, last[, step]'", path=f, line=no) from None
-                sets[name].extend(range(a, b + 1, step[0] if step else 1))
+                    raise InputError(f"*{mode.upper()}, GENERATE needs 'first, last[, step]'", path=f,
+                                     line=no) from None
+                target[name].extend(range(a, b + 1, step[0] if step else 1))
                 continue
             for v in vals:
-                if v.upper() in sets:
-                    sets[name].extend(sets[v.upper()])
+                if v.upper() in target:
+                    target[name].extend(target[v.upper()])
                     continue
                 try:
-                    sets[name].append(int(v))
+                    target[name].append(int(v))
                 except ValueError:
-                    raise InputError(f"*NSET {name}: {v!r} is neither a node id nor a set defined before",
+                    raise InputError(f"*{mode.upper()} {name}: {v!r} is neither an id nor a set defined before",
                                      path=f, line=no) from None
+    for nset, eset, f, no in from_elsets:
+        if eset not in elsets:
+            raise InputError(f"*NSET {nset}: element set {eset} is not defined", path=f, line=no)
+        for e in elsets[eset]:
+            sets[nset].extend(elements.get(e, []))
     return {k: np.unique(np.array(v, dtype=np.int64)) for k, v in sets.items()}
 
 
