@@ -145,6 +145,15 @@ def _signal(img: np.ndarray, polarity: str, se_px: int) -> np.ndarray:
     return cv2.morphologyEx(img, op, cv2.getStructuringElement(cv2.MORPH_RECT, (se, se)))
 
 
+def _smoothed(sig: np.ndarray, sigma_px: float) -> np.ndarray:
+    """``sig`` smoothed by a Gaussian of ``sigma_px`` (0: as it is): a matched filter for faint,
+    blurred blobs, whose pixels are each near the noise while their sum is well above it."""
+    if not sigma_px > 0:
+        return sig
+    import cv2
+    return cv2.GaussianBlur(sig, (0, 0), float(sigma_px))
+
+
 def _components(sig: np.ndarray, thresh: float):
     import cv2
     mask = (sig > thresh).astype(np.uint8)
@@ -193,7 +202,7 @@ def refine_centroid(sig: np.ndarray, xy0, radius_px: float, floor: float = 0.0,
 
 
 def estimate_blob_diameter(img: np.ndarray, polarity: str, valid: np.ndarray, se0: int = 15,
-                           rel_tol: float = 0.15, max_steps: int = 8) -> float:
+                           rel_tol: float = 0.15, max_steps: int = 8, smooth_px: float = 0.0) -> float:
     r"""Blob diameter (px) from the image, whatever the blob size: a scale-space search.
 
     The top-hat of width :math:`w` (:func:`_signal`) keeps only features narrower than
@@ -208,7 +217,7 @@ def estimate_blob_diameter(img: np.ndarray, polarity: str, valid: np.ndarray, se
     se, d_prev = int(se0), None
     se_max = max(se0, min(img.shape) // 2)
     for _ in range(max_steps):
-        sig0 = _signal(img, polarity, se)
+        sig0 = _smoothed(_signal(img, polarity, se), smooth_px)
         thr0, _ = _robust_threshold(sig0, valid, 6.0)
         _, _, stats, _ = _components(np.where(valid, sig0, 0), thr0)
         areas = stats[1:, cv2.CC_STAT_AREA].astype(float)
@@ -230,7 +239,8 @@ def estimate_blob_diameter(img: np.ndarray, polarity: str, valid: np.ndarray, se
 
 def detect_blobs(image: np.ndarray, polarity: Literal["dark", "bright"] = "dark",
                  diameter_px: float | None = None, mask: np.ndarray | None = None,
-                 area_range: tuple[float, float] = (0.4, 2.5), max_elongation: float = 2.0) -> Blobs:
+                 area_range: tuple[float, float] = (0.4, 2.5), max_elongation: float = 2.0,
+                 smooth_px: float = 0.0) -> Blobs:
     """Centres of round blobs (beads, dots) to sub-pixel accuracy.
 
     Parameters
@@ -245,6 +255,10 @@ def detect_blobs(image: np.ndarray, polarity: Literal["dark", "bright"] = "dark"
         Accepted component area as a multiple of the median component area.
     max_elongation : float
         Largest accepted ratio of the principal axes of a component.
+    smooth_px : float
+        Gaussian smoothing (sigma, px) of the blob signal before the threshold and the
+        components (the centres are refined on the signal unsmoothed): for faint, blurred
+        blobs (:func:`find_circles` retries with it).
     """
     import cv2
     if polarity not in ("dark", "bright"):
@@ -264,12 +278,14 @@ def detect_blobs(image: np.ndarray, polarity: Literal["dark", "bright"] = "dark"
     if mask is not None:
         valid &= mask
     if diameter_px is None:
-        diameter_px = estimate_blob_diameter(img, polarity, valid)
+        diameter_px = estimate_blob_diameter(img, polarity, valid, smooth_px=smooth_px)
     d = float(diameter_px)
     sig = _signal(img, polarity, int(round(2.5 * d)) + 2)
     sig = np.where(valid, sig, 0).astype(np.float32)
-    thr, noise = _robust_threshold(sig, valid, 5.0)
-    n, lab, stats, cent = _components(sig, thr)
+    det = np.where(valid, _smoothed(sig, smooth_px), 0).astype(np.float32)
+    thr, noise_det = _robust_threshold(det, valid, 5.0)
+    noise = _robust_threshold(sig, valid, 5.0)[1] if smooth_px > 0 else noise_det
+    n, lab, stats, cent = _components(det, thr)
     if n <= 1:
         raise DetectionFailed(f"no {polarity} blobs above the noise")
     area = stats[1:, cv2.CC_STAT_AREA].astype(float)
@@ -336,29 +352,29 @@ def lattice_indices(xy: np.ndarray, tol: float = 0.3) -> tuple[np.ndarray, np.nd
     if n < 5:
         return ij, ok
     tree = cKDTree(xy)
-    dist, nn = tree.query(xy, k=min(9, n))
-    d0 = float(np.median(dist[:, 1]))
+    _, nn = tree.query(xy, k=min(9, n))
     centre = np.median(xy, axis=0)
     order = np.argsort(np.hypot(*(xy - centre).T))
+    # the seed: a point near the centre with a lattice step u (its nearest neighbour) and a
+    # second step v (the nearest neighbour at least 30 degrees off u's line) whose four points
+    # s +- u, s +- v are all there.  The seed had to have four neighbours within 1.4 times the
+    # median spacing: a plate tilted 45 degrees or more (stereo frames of C-arms 90 degrees
+    # apart) foreshortens one axis so its second neighbours fall beyond, and the view was
+    # rejected with every bead detected ("0 of 136 grid points found")
     seed = None
     for s in order[: max(50, n // 4)]:
-        near = nn[s, 1:][dist[s, 1:] < 1.4 * d0]
-        if len(near) >= 4:
+        vecs = xy[nn[s, 1:]] - xy[s]
+        lens = np.hypot(*vecs.T)
+        u = vecs[int(np.argmin(lens))]
+        sin = np.abs(u[0] * vecs[:, 1] - u[1] * vecs[:, 0]) / np.maximum(lens * np.hypot(*u), 1e-300)
+        off = np.flatnonzero(sin > 0.5)
+        if not len(off):
+            continue
+        v = vecs[off[int(np.argmin(lens[off]))]]
+        if all(tree.query(xy[s] + w)[0] <= tol * np.hypot(*w) for w in (u, -u, v, -v)):
             seed = s
             break
     if seed is None:
-        return ij, ok
-    vecs = xy[nn[seed, 1:]] - xy[seed]
-    vecs = vecs[np.hypot(*vecs.T) < 1.4 * d0]
-    ang = np.arctan2(vecs[:, 1], vecs[:, 0])
-    u = vecs[np.argmin(np.abs(ang))]
-    # v: the neighbour a quarter turn on from u (towards +y).  Not the one nearest +y on its
-    # own: an asymmetric-circles grid square to the image has its neighbours at +-45 and
-    # +-135 degrees, u and v tied between two each, and both could fall on the same step
-    # (the view was rejected, "0 of 136 grid points found", in 22 of 40 noise draws at 0 deg)
-    rel = np.angle(np.exp(1j * (ang - np.arctan2(u[1], u[0]) - np.pi / 2)))
-    v = vecs[np.argmin(np.abs(rel))]
-    if abs(u[0] * v[1] - u[1] * v[0]) < 0.5 * np.hypot(*u) * np.hypot(*v):
         return ij, ok
     steps = {(1, 0): u, (-1, 0): -u, (0, 1): v, (0, -1): -v}
     local = np.zeros((n, 2, 2))  # per point: step along a, step along b
@@ -791,6 +807,11 @@ def chessboard_size(image: np.ndarray, grid: tuple[int, int]) -> tuple[int, int]
     return (max(size), min(size)) if grid[0] >= grid[1] else (min(size), max(size))
 
 
+#: The Gaussian smoothing (sigma, px) of the blob signal :func:`find_circles` tries in turn
+#: until the lattice holds the whole grid (0: none).
+BLOB_SMOOTH_RETRIES_PX = (0.0, 1.0, 2.0)
+
+
 def find_circles(image: np.ndarray, grid: tuple[int, int], spacing_mm: float, *,
                  asymmetric: bool = False, polarity: Literal["dark", "bright"] = "dark",
                  diameter_px: float | None = None, mask: np.ndarray | None = None,
@@ -802,18 +823,35 @@ def find_circles(image: np.ndarray, grid: tuple[int, int], spacing_mm: float, *,
     column seen (fine for intrinsics; ``complete`` is False).
     """
     pattern = "asymmetric-circles" if asymmetric else "circles"
-    blobs = detect_blobs(image, polarity=polarity, diameter_px=diameter_px, mask=mask)
+    n_target = grid[0] * grid[1]
+    # blobs as they are, then, where the lattice falls short of the grid, with the signal
+    # smoothed (a matched filter): beads blurred to a sigma of 2 px were plainly visible but
+    # their pixels each near the noise, 63 of 136 found, and every view was lost (exit 1)
+    best, first_error = None, None
+    for smooth in BLOB_SMOOTH_RETRIES_PX:
+        try:
+            b = detect_blobs(image, polarity=polarity, diameter_px=diameter_px, mask=mask, smooth_px=smooth)
+        except DetectionFailed as e:
+            first_error = first_error or e
+            continue
+        ij_b, ok_b = lattice_indices(b.xy) if len(b.xy) >= 6 else (np.zeros((len(b.xy), 2), int),
+                                                                    np.zeros(len(b.xy), bool))
+        if best is None or ok_b.sum() > best[2].sum():
+            best = (b, ij_b, ok_b, smooth)
+        if ok_b.sum() >= n_target:
+            break
+    if best is None:
+        raise first_error
+    blobs, ij, ok, smooth = best
     if len(blobs.xy) < 6:
         raise DetectionFailed(f"only {len(blobs.xy)} {polarity} blobs found" + (
             "" if diameter_px is not None else
             f" with the blob diameter estimated from the image at {blobs.diameter_px:.1f} px: if the estimate "
             "failed, give --diameter-px"))
-    ij, ok = lattice_indices(blobs.xy)
     xy = blobs.xy[ok]
     ij = ij[ok]
-    n_target = grid[0] * grid[1]
     info = {"method": "blobs+lattice", "polarity": polarity, "diameter_px": blobs.diameter_px,
-            "n_blobs": int(len(blobs.xy)), "n_on_lattice": int(ok.sum())}
+            "n_blobs": int(len(blobs.xy)), "n_on_lattice": int(ok.sum()), "smooth_px": smooth}
     if len(xy) > n_target:
         # a speck of dust (or a bead) on a lattice site just beyond the grid: a lone point or two
         # on an outer row or column of the lattice; kept out where the rest is the whole grid
