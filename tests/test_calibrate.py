@@ -766,3 +766,16 @@ def test_a_speck_on_a_lattice_site_beyond_the_grid_is_left_out():
     keep = _without_stray_edges(ij, 1, whole)
     assert keep is not None and not keep[-1] and keep[:-1].all()
     assert _without_stray_edges(ij[:-1], 0, whole) is None
+
+
+def test_a_grid_larger_than_the_chessboard_is_named():
+    """--grid 10x6 on OpenCV's 9x6 board: on left13.jpg OpenCV's finder returns 10x6 "corners",
+    one line of them along the board's edge, whose cells are all squares; the view had been
+    calibrated with every point a square off.  The margin beyond that line does not alternate:
+    the board's size is named; every real view is still found with the right grid."""
+    from bsipipe.imaging.gridfind import GridMismatch
+    im = cv2.imread(str(STEREO / "left13.jpg"), cv2.IMREAD_GRAYSCALE)
+    with pytest.raises(GridMismatch, match=r"the board has 9x6 inner corners, --grid says 10x6 .*board's edge"):
+        find_chessboard(im, (10, 6), 25.0)
+    for f in sorted(STEREO.glob("*.jpg")):
+        assert len(find_chessboard(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE), (9, 6), 25.0).image_points) == 54

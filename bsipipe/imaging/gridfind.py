@@ -616,9 +616,18 @@ def find_chessboard(image: np.ndarray, grid: tuple[int, int], spacing_mm: float,
         extra = chessboard_extension(g, pts, grid)
         if any(extra):
             found = (grid[0] + extra[0] + extra[1], grid[1] + extra[2] + extra[3])
+        else:
+            # a grid larger than the board can be found with a line of "corners" along the
+            # board's edge (the outer squares' vertices on the margin): calibrated, every
+            # point of the view is a square off
+            left, right, top, bottom = chessboard_edge_lines(g, pts, grid)
+            if left or right or top or bottom:
+                found = (grid[0] - left - right, grid[1] - top - bottom)
     if found is not None:
+        how = ("a part of it" if found[0] * found[1] > grid[0] * grid[1] else
+               "a line of corners along the board's edge, beyond its inner corners")
         raise GridMismatch(f"the board has {found[0]}x{found[1]} inner corners, --grid says {grid[0]}x{grid[1]} "
-                           f"({method} found a part of it)", found)
+                           f"({method} found {how})", found)
     obj = target_points("chessboard", grid, spacing_mm)
     ids = np.arange(len(pts))
     colrow = np.column_stack([ids % grid[0], ids // grid[0]])
@@ -765,6 +774,46 @@ def chessboard_extension(image: np.ndarray, corners_px: np.ndarray, grid: tuple[
                 hi[axis] = new
             extra[side] += 1
     return tuple(extra)
+
+
+def chessboard_edge_lines(image: np.ndarray, corners_px: np.ndarray, grid: tuple[int, int]) -> tuple[bool, ...]:
+    """Which outermost corner lines ``(left, right, top, bottom)`` of a found grid lie on the
+    board's edge, not inside it.  Beyond the outermost inner corners of a board lies a line of
+    its squares, whose colours alternate as the cells just inside do (each the opposite
+    colour); beyond a line on the board's edge lies its margin, which does not alternate.  An
+    edge line is one where the cells half a square out change by less than
+    ``CHESS_EXTEND_RATIO`` of the cells inside in at least ``CHESS_EXTEND_FRACTION`` of the
+    steps.  OpenCV's finder asked for 10x6 on a 9x6 board returned one (OpenCV's left13.jpg):
+    its cells are all squares, so the cell test passes it."""
+    import cv2
+    C, R = grid
+    if R < 3 or C < 3:
+        return (False, False, False, False)
+    g = np.asarray(image, np.float32)
+    P = np.asarray(corners_px, np.float64).reshape(R, C, 2)
+    out = []
+    for axis, sgn in ((0, -1), (0, 1), (1, -1), (1, 1)):
+        other = 1 - axis
+        n_ax, n_other = (C, R) if axis == 0 else (R, C)
+        edge = 0 if sgn < 0 else n_ax - 1
+        lines = [edge - sgn * k for k in range(3)]
+        src = np.array([(a, b) for a in range(C) for b in range(R) if (a, b)[axis] in lines], np.float64)
+        H = cv2.findHomography(src, np.array([P[int(b), int(a)] for a, b in src]))[0]
+        if H is None:
+            out.append(False)
+            continue
+        cells = np.zeros((n_other - 1, 2))
+        cells[:, other] = np.arange(n_other - 1) + 0.5
+        cells[:, axis] = edge + 0.5 * sgn
+        beyond = _sample_cells(g, H, cells)
+        cells[:, axis] = edge - 0.5 * sgn
+        inside = _sample_cells(g, H, cells)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio = np.abs(np.diff(beyond) / np.diff(inside))
+        seen = np.isfinite(ratio)
+        out.append(bool(seen.sum() >= max(2, 0.75 * len(ratio))
+                        and np.mean(ratio[seen] < CHESS_EXTEND_RATIO) >= CHESS_EXTEND_FRACTION))
+    return tuple(out)
 
 
 def chessboard_size(image: np.ndarray, grid: tuple[int, int]) -> tuple[int, int] | None:
