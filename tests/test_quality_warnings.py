@@ -524,6 +524,34 @@ def test_fps_over_stamps_wins_over_a_videos_container_rate(twin, tmp_path):
     np.testing.assert_allclose(t["time_s"], t["frame"] / fps)
 
 
+def test_a_rate_for_the_view_without_stamps_only(twin, tmp_path):
+    """A stamped video for cam1 beside cam2's PNG folder: --fps cam2=F had been refused ("a
+    frame rate per view must give every view and only them"); it is taken, cam1 keeping its
+    video's times.  A view whose frames have no stamps and no rate is exit 2 naming it; and a
+    source's stamps used at the rate --fps gives are named as the source's (it had said
+    "--fps 2")."""
+    import cv2
+    fps = float(SYNTH_TINY["sequence"]["fps"])
+    frames = sorted((twin / "synth/sequence/cam1").glob("*.png"))
+    first = cv2.imread(str(frames[0]), cv2.IMREAD_GRAYSCALE)
+    video = tmp_path / "cam1.avi"
+    w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), fps, first.shape[::-1], isColor=False)
+    for f in frames:
+        w.write(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE))
+    w.release()
+    base = ["track", "--view", f"cam1={video}", "--view", f"cam2={twin / 'synth/sequence/cam2'}",
+            "--seeds", twin / "synth/seeds.csv", "--no-loop"]
+    _invoke(*base, "--fps", f"cam2={fps:g}", "-o", tmp_path / "mixed")
+    res = json.loads((tmp_path / "mixed" / "track.json").read_text())
+    assert res["views"]["cam1"]["time_source"] == "the source's time stamps"
+    assert res["views"]["cam2"]["time_source"] == f"--fps {fps:g}"
+    r = CliRunner().invoke(cli, [str(a) for a in base] + ["--fps", f"cam1={fps:g}", "-o", str(tmp_path / "no")])
+    assert r.exit_code == 2 and "none for cam2, whose frames have no time stamps" in r.output, r.output
+    _invoke(*base, "--fps", f"{fps:g}", "-o", tmp_path / "same")
+    res = json.loads((tmp_path / "same" / "track.json").read_text())
+    assert res["views"]["cam1"]["time_source"] == "the source's time stamps"
+
+
 def test_two_view_automatic_tracks_without_a_calibration_keep_apart(twin, tmp_path):
     """Without seeds and without a calibration nothing pairs the views' tracks, yet each view
     numbered its own M1, M2, ... and the XMALab 2-D file put cam1's M3 beside an unrelated cam2

@@ -165,9 +165,16 @@ class TrackConfig(StrictModel):
     @classmethod
     def _one_per_view(cls, v, info):
         if isinstance(v, dict) and info.data.get("views") is not None:
-            one, many = {"diameter_px": ("a diameter", "diameters"), "fps": ("a frame rate", "frame rates")}[
-                info.field_name]
-            _every_view(one, many, v, info.data["views"])
+            views = info.data["views"]
+            if info.field_name == "fps":
+                # a rate for the views without time stamps only (a stamped video beside a
+                # folder of PNGs): the others keep their own times
+                unknown = [k for k in v if k not in views]
+                if unknown:
+                    raise ValueError(f"a frame rate per view names views {', '.join(views)}; {', '.join(unknown)} "
+                                     "is none of them")
+            else:
+                _every_view("a diameter", "diameters", v, views)
         return v
 
     def fps_of(self, view: str) -> float | None:
@@ -846,6 +853,31 @@ def _missing_frame_rows(table: pd.DataFrame, missing: dict[str, list[int]], cfg,
     return out.iloc[np.lexsort((out["frame"].to_numpy(), rank.to_numpy()))].reset_index(drop=True)
 
 
+def _noting_stamps(frames, state: dict):
+    """``frames`` as they come, ``state["stamped"]`` set when one carries its source's own time."""
+    for fr in frames:
+        if fr.time_s is not None:
+            state["stamped"] = True
+        yield fr
+
+
+def _rates_for_unstamped_views(cfg, views) -> None:
+    """A per-view ``--fps`` may leave out views whose sources have their own time stamps (a
+    stamped video beside a folder of PNGs); one left out whose frames have none is exit 2
+    naming it (it had been refused whatever the source: "a frame rate per view must give
+    every view")."""
+    if not isinstance(cfg.fps, dict):
+        return
+    from ..io.images import iter_frames
+    for v in views:
+        if v in cfg.fps:
+            continue
+        first = next(iter(iter_frames(cfg.views[v], channel=cfg.channel)), None)
+        if first is not None and first.time_s is None:
+            raise InputError(f"--fps gives rates for {', '.join(cfg.fps)} but none for {v}, whose frames have no "
+                             f"time stamps: give --fps {v}=F too", path=cfg.views[v], key="fps")
+
+
 def _track_views(cfg, views, seed_df, d: dict, det, tk, progress: bool, rois: dict):
     """Track every view (:func:`bsipipe.imaging.track.track_view`), frames decoded ahead on
     threads (a pool for a folder of frames, :func:`~bsipipe.io.images.decode_workers`;
@@ -895,6 +927,7 @@ def _track_views(cfg, views, seed_df, d: dict, det, tk, progress: bool, rois: di
 
         try:
             frames = iter_frames(path, channel=cfg.channel, hashes=frame_hashes, workers=decode_workers())
+            frames = _noting_stamps(frames, state)
             if cfg.fps_over_stamps and cfg.fps_of(v) is not None:
                 # the rate given wins over the source's own stamps (a container's default rate)
                 frames = (fr._replace(time_s=None) for fr in frames)
@@ -909,7 +942,8 @@ def _track_views(cfg, views, seed_df, d: dict, det, tk, progress: bool, rois: di
         tables.append(res.table)
         events.extend(res.events)
         info[v] = {"path": path, "n_frames": state["n"], "frame_shape_px": state["shape"], "field_of_view": res.fov,
-                   "settings": res.settings, "frames_without_picture": state["blank"]}
+                   "settings": res.settings, "frames_without_picture": state["blank"],
+                   "source_stamped": state.get("stamped", False)}
         nf = int(res.table["found"].sum())
         log.info("track: %s: %d frames, %d markers, %d of %d positions found, %d events", v, state["n"],
                  res.table["marker"].nunique(), nf, len(res.table), len(res.events))
@@ -1305,11 +1339,12 @@ def _sequence_warnings(table: pd.DataFrame, events: list[dict], cfg, views, info
     stamped = {v: r for v, r in rates.items() if not cfg.fps_over_stamps and given.get(v) is not None
                and abs(r - given[v]) > 1e-3 * given[v]}
     for v in views:
+        own = info.get(v, {}).get("source_stamped", False)
         info.get(v, {})["time_source"] = (
             "none: no time stamps and no --fps" if v in untimed else
             f"--fps {given[v]:g} (over the source's own stamps: --fps-over-stamps)" if cfg.fps_over_stamps
             and given[v] is not None else
-            "the source's time stamps" if given[v] is None or v in stamped else f"--fps {given[v]:g}")
+            "the source's time stamps" if given[v] is None or v in stamped or own else f"--fps {given[v]:g}")
     if stamped:
         out.append(warning(
             "fps-ignored",
@@ -1667,6 +1702,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     shapes = {v: None if im is None else im.shape for v, im in firsts.items()}
     rois = _resolve_rois(cfg, shapes, config_path) if given_roi else _roi_per_view(cfg)
     _check_diameter(cfg, shapes, config_path)
+    _rates_for_unstamped_views(cfg, views)
     rig = pair = cal_rms = None
     if cfg.calibration:
         rig, pair, cal_rms = _read_calibration(cfg.calibration, views)
