@@ -479,7 +479,7 @@ def _regular_if_coarse(times) -> tuple[tuple, float]:
                   bounds=[(None, None), (None, None), (0.0, None)], method="highs")
     if not res.success:
         return tuple(times), 0.0
-    icpt, slope, worst = res.x
+    _, slope, worst = res.x
     if not (slope > 0 and worst <= q):
         return tuple(times), 0.0
     log.info("time stamps written to %g s for frames %.4g s apart: a steady rate of %.5g frames/s fitted",
