@@ -633,8 +633,12 @@ def summarise(stage: str, folder: Path) -> str:
         return ", ".join(sorted(k for k in ("abaqus", "lsdyna", "febio") if (Path(folder) / k).is_dir()))
     if stage == "fe-solve":
         pk = d.get("peak_result") or {}
+        fp = (d.get("indentor_force") or {}).get("peak") or {}
+        force = (f"; indentor {g(fp.get('magnitude_n'), '.3g')} N" + (
+            f" (log {g(fp.get('log_force_n'), '.3g')} N, x{g(fp.get('ratio'), '.2g')})" if "ratio" in fp else "")
+                 if fp else "")
         return (f"CalculiX: {d.get('n_results', '?')} results; deepest at t = {g(pk.get('time'))}: "
-                f"max |u| {g(pk.get('max_displacement_mm'), '.4f')} mm")
+                f"max |u| {g(pk.get('max_displacement_mm'), '.4f')} mm" + force)
     if stage == "compare":
         return f"sigma {g(d.get('sigma_mm'), '.4f')} mm over {d.get('n_markers')} markers, frame {d.get('frame')}"
     return ""

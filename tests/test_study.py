@@ -23,6 +23,7 @@ import time
 from functools import partial
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 import yaml
@@ -274,6 +275,16 @@ def test_tiny_study_end_to_end(clean):
     if expect_fe:
         cmp = json.loads((t / "compare" / "compare.json").read_text())
         assert cmp["n_markers"] >= 1 and cmp["sigma_mm"] >= 0
+        # the indentor's force, the FE stage's other target, in N beside the log's (the .dat
+        # holds it in the deck's force unit, mN here; no output had shown it)
+        fs = json.loads((t / "fe-solve" / "fe_solve.json").read_text())
+        f = fs["indentor_force"]
+        from bsipipe.fe._calculix import parse_dat
+        tot = [b for b in parse_dat((t / "fe-solve" / "job.dat").read_text()) if b.title.startswith("total force")]
+        assert len(f["magnitude_n"]) == len(tot)
+        assert f["peak"]["magnitude_n"] == pytest.approx(max(np.linalg.norm(b.values) for b in tot) / 1e3, rel=1e-6)
+        assert 0 < f["peak"]["log_force_n"] < 1.0 and f["peak"]["ratio"] == pytest.approx(
+            f["peak"]["magnitude_n"] / f["peak"]["log_force_n"])
     summary = json.loads((out / "study.json").read_text())
     assert summary["counts"]["failed"] == 0 and "provenance" in summary
 

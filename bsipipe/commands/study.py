@@ -19,6 +19,7 @@ reads, with ``fe_solve.json``.
 
 from __future__ import annotations
 
+import logging
 import os
 import shutil
 import time
@@ -26,6 +27,8 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from ..errors import InputError, ProcessingError
+
+log = logging.getLogger(__name__)
 
 
 class StudyFailed(ProcessingError):
@@ -119,6 +122,65 @@ def run(config: str | os.PathLike, *, out: str | os.PathLike | None = None, forc
     return report
 
 
+#: The FE indentor force at the deepest result is said to differ from the log's when their
+#: ratio is outside this range.
+FORCE_RATIO_RANGE = (0.5, 2.0)
+
+
+def _indentor_force(deck: Path, dat: bytes | None, peak_time: float | None) -> dict | None:
+    """The indentor's reaction force from the solver's ``.dat`` (``*NODE PRINT, NSET=INDENTOR,
+    TOTALS=ONLY`` of RF, which export-fe's decks ask for), in N (the deck's force unit from its
+    ``** bsipipe: fe_force_per_n`` header), its magnitude at each result time, and, where
+    export-fe's ``target_force.csv`` (the log's contact-zeroed force against time from contact)
+    sits beside the deck's folder, the log's force at the same times and the ratio at the
+    deepest result: the match the FE stage tunes the interface stiffness for, which no output
+    had shown (the study's first run: 1.05 N for a log's 0.23 N, unsaid).  None where the deck
+    is not export-fe's or the file holds no such totals."""
+    import numpy as np
+    import pandas as pd
+
+    from ..fe._calculix import parse_dat
+    from ..io.abaqus import abaqus_header_values
+
+    if dat is None:
+        return None
+    head = abaqus_header_values(deck)
+    try:
+        per_n = float(head["fe_force_per_n"])
+    except (KeyError, ValueError):
+        return None
+    blocks = [b for b in parse_dat(dat.decode("utf-8", "replace"))
+              if b.title.startswith("total force") and b.set_name.upper() == "INDENTOR" and b.values.size >= 3]
+    if not blocks:
+        return None
+    t = np.array([b.time for b in blocks])
+    f = np.array([np.asarray(b.values, float).reshape(-1)[:3] for b in blocks]) / per_n
+    mag = np.linalg.norm(f, axis=1)
+    out = {"unit": "N", "time": t.tolist(), "force_n": f.tolist(), "magnitude_n": mag.tolist()}
+    k = int(np.argmin(np.abs(t - peak_time))) if peak_time is not None else int(np.argmax(mag))
+    out["peak"] = {"time": float(t[k]), "magnitude_n": float(mag[k])}
+    target = deck.parent.parent / "target_force.csv"
+    if target.is_file():
+        tf = pd.read_csv(target)
+        if {"time_s", "force_n"} <= set(tf.columns) and len(tf) >= 2:
+            # the log's force at the FE times (its loading part up to the deepest point: the FE
+            # step time runs from contact, as the target's time_s does)
+            log_f = np.interp(t, tf["time_s"].to_numpy(float), tf["force_n"].to_numpy(float),
+                              left=np.nan, right=np.nan)
+            out["log_force_n"] = [None if not np.isfinite(v) else float(v) for v in log_f]
+            lf = float(log_f[k])
+            if np.isfinite(lf) and lf > 0:
+                ratio = float(mag[k]) / lf
+                out["peak"].update(log_force_n=lf, ratio=ratio)
+                lo, hi = FORCE_RATIO_RANGE
+                if not lo <= ratio <= hi:
+                    out["warning"] = (f"the FE indentor force at the deepest result (t = {t[k]:.4g}) is {mag[k]:.3g} N, "
+                                      f"{ratio:.2g} times the log's {lf:.3g} N there: the model's stiffness (the "
+                                      "material, the interface springs, the mesh and its boundaries) does not match "
+                                      "the in situ test; it is what the interface stiffness is tuned on")
+    return out
+
+
 def fe_solve(deck: str | os.PathLike, *, out: str | os.PathLike, timeout_s: float = 1800.0,
              length_unit: str = "mm") -> dict:
     """Run an ABAQUS deck (and the files it includes, from its folder) in CalculiX.
@@ -164,9 +226,12 @@ def fe_solve(deck: str | os.PathLike, *, out: str | os.PathLike, timeout_s: floa
         frd = work / "job.frd"
         if not frd.is_file():
             raise ProcessingError("CalculiX wrote no .frd file: the deck needs a *NODE FILE request for U", path=deck)
+        dat = None
         for name in ("job.frd", "job.dat"):
             if (work / name).is_file():
-                rs.add_bytes(name, (work / name).read_bytes())
+                data = (work / name).read_bytes()
+                rs.add_bytes(name, data)
+                dat = data if name == "job.dat" else dat
         rs.add_text("ccx.log", res.stdout)
         first = read_frd(frd)   # the last result; tells how many there are
         peaks = []
@@ -183,12 +248,18 @@ def fe_solve(deck: str | os.PathLike, *, out: str | os.PathLike, timeout_s: floa
     for j, a in enumerate("xyz"):
         table[f"u{a}_{length_unit}"] = peak.u_mm[:, j] * scale
     rs.add_csv("displacements_peak.csv", table, float_format="%.9g")
+    force = _indentor_force(deck, dat, peak.time)
     summary = {"deck": str(deck), "ccx": exe, "n_results": first.n_results, "results": list(first.results),
                "peak_result": {"index": k, "description": peak.step, "time": peak.time,
                                "max_displacement_mm": peaks[k]},
                "max_displacement_mm": max(peaks), "length_unit": length_unit,
                "warnings": res.warnings[:50], "n_warnings": len(res.warnings),
                "timing": {"solve_s": solve_s}}
+    if force is not None:
+        summary["indentor_force"] = force
+        if force.get("warning"):
+            summary["warnings"] = [force["warning"]] + summary["warnings"]
+            log.warning("fe-solve: %s", force["warning"])
     summary["provenance"] = provenance({"deck": str(deck), "timeout_s": timeout_s, "length_unit": length_unit},
                                        [deck], command="fe-solve")
     rs.add_json("fe_solve.json", summary)

@@ -991,6 +991,8 @@ def render_files(h: Handoff, cfg, sources: dict[str, str | None], *,
         f"FE time 0 on the marker tables' (X-ray) clock: contact log time + clock offset {h.clock_offset_s:g} s",
         abaqus_header_line("fe_time_zero_xray_s", repr(float(h.window.time_s + h.clock_offset_s))),
         abaqus_header_line("fe_time_unit", u.time),
+        abaqus_header_line("fe_force_per_n", repr(float(u.per_n))),
+        abaqus_header_line("fe_force_unit", u.force),
         abaqus_header_line("frame", "CT (FE) frame of registration.json"),
     ] + ([abaqus_header_line("ct_coordinate_system", coordinate_system)] if coordinate_system else [])
     mat_sources = [_src("hyperelastic law and parameters (Pa)", src_fit, "model, params"),
