@@ -836,7 +836,10 @@ def build_handoff(cfg, *, fit: dict, transform, markers_ct: pd.DataFrame, log: L
         nominal_area, area_source = springs.area_mm2, "the deck mesh's interface area"
     nominal_k = spring_stiffness_n_per_mm(k_area, nominal_area, cfg.interface.n_springs)
     if springs.n_springs != cfg.interface.n_springs:
-        warnings.append(f"the deck mesh has {springs.n_springs} interface nodes, the study "
+        n_nodes = len(np.unique(springs.brain_nodes))
+        warnings.append(f"the deck mesh has {springs.n_springs} interface springs"
+                        + (f" ({n_nodes} nodes, one per side at edges and corners)" if n_nodes != springs.n_springs
+                           else "") + ", the study "
                         f"{cfg.interface.n_springs} springs: the deck's springs carry k x A_mesh / n_mesh = "
                         f"{deck_k:.6g} N/mm each (the study's k x A / n = {nominal_k:.6g} N/mm)")
     trib = np.asarray(springs.tributary_area_mm2, dtype=float)
@@ -849,7 +852,7 @@ def build_handoff(cfg, *, fit: dict, transform, markers_ct: pd.DataFrame, log: L
             # the uniform rule is exact on equal cells only: on this mesh it gives some nodes
             # several times, others a fraction of, the stiffness of their share of the surface
             mean = float(trib.mean())
-            warnings.append(f"the interface nodes' tributary areas range {lo:.3g}-{hi:.3g} mm^2 (mean {mean:.3g}): "
+            warnings.append(f"the interface springs' tributary areas range {lo:.3g}-{hi:.3g} mm^2 (mean {mean:.3g}): "
                             f"the uniform springs k x A / n carry {mean / hi:.2f}-{mean / lo:.2f} times the "
                             "stiffness of each node's share of the surface; interface.lumping: tributary gives "
                             "each spring k x its tributary area (springs.csv lumped_stiffness_n_per_mm)")
