@@ -450,3 +450,16 @@ def test_a_stress_strain_export_is_named_as_such(tmp_path):
         read_machine_log(p)
     assert e.value.line == 1 and "'Compressive strain', 'Compressive stress'" in str(e.value)
     assert "--stress-stretch" in str(e.value)
+
+
+def test_a_bluehill2_export_in_minutes_is_bluehill2(tmp_path):
+    """The layout had been told by the time unit alone: a Bluehill 2 file with "(min)" read as
+    Bluehill 3.  Its times are read in minutes."""
+    from bsipipe.synth.machine_log import synth_compression_log, write_bluehill2
+    frame, _ = synth_compression_log(seed=2)
+    frame["time_s"] = frame["time_s"] / 60.0
+    p = write_bluehill2(frame, tmp_path / "min.csv")
+    p.write_text(p.read_text().replace("(sec)", "(min)"))
+    ml = read_machine_log(p)
+    assert ml.layout == "bluehill2"
+    assert ml.time_s[-1] == pytest.approx(60.0 * frame["time_s"].iloc[-1], rel=1e-6)

@@ -425,7 +425,11 @@ def read_machine_log(path: str | os.PathLike) -> MachineLog:
                          "be fitted as a stress-stretch table, mode uniaxial)", path=path, line=int(line_no[k]))
 
     if units_row is not None:
-        layout = "bluehill2" if units[names[roles["time"]]].lower() == "sec" else "bluehill3"
+        # Bluehill 2 writes seconds "(sec)", Bluehill 3 "(s)"; another time unit (an export in
+        # minutes, which had been called Bluehill 3 whatever its layout): Bluehill 3 marks its
+        # table "Raw Data"
+        t_unit = units[names[roles["time"]]].lower()
+        layout = ("bluehill2" if t_unit == "sec" else "bluehill3" if t_unit == "s" or raw_marker else "bluehill2")
     elif raw_marker or metadata or any(ln.strip() for ln in lines[:h]):
         layout = "bluehill-universal"
     else:
