@@ -352,7 +352,8 @@ def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig, per_log: dict[str, lis
                 baseline = {"level_n": 0.0,
                             "source": "the record starts compressed (the given contact is before its first sample) "
                                       "yet reads about 0 N: the load cell was zeroed at the first sample; the "
-                                      "model's force there is taken out of every sample (tared_at_start)"}
+                                      "model's force there is taken out of every sample (tared_at_start), and the "
+                                      "zero's error, that sample's noise, is fitted (tare_n)"}
             else:
                 baseline = {"level_n": 0.0,
                             "source": "assumed 0 N (the load cell zeroed unloaded): the record has "
@@ -994,6 +995,9 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
                                                    f"+ {final.values['drift_n_per_s' + sfx]:.3g} N/s")
             else:
                 info["force_baseline"]["model"] = "0 N: the model takes the load cell's zero as the unloaded force"
+            tare_key = "tare_n" + (f"[{i}]" if len(input_info) > 1 else "")
+            if tare_key in final.values:
+                info["force_baseline"]["tare_n"] = float(final.values[tare_key])
             if not baseline_measurable(data[i]):
                 info["force_baseline"]["model"] += (" (load-baseline-drift not tried: no sample before the contact "
                                                     "measures the zero)")

@@ -449,6 +449,28 @@ def effect_veto(before, after) -> str | None:
     return None
 
 
+def tared_contact_veto(logs: Sequence[LogData], after) -> str | None:
+    """A candidate that moves the contact of a record zeroed in contact (``tared_at_start``:
+    the specimen already compressed at its first sample, where the load cell was zeroed)
+    past that first sample: the record's own premise undone, the zero then standing at a
+    loaded sample the model calls unloaded.  On a record pressed 0.22 mm and zeroed, the
+    loop had freed the given contact by 0.263 mm, mu 822 Pa [819, 826] for a true 720, with
+    only a parameter-correlation warning."""
+    vals = getattr(after.fit, "values", {}) or {}
+    for i, lg in enumerate(logs):
+        if not getattr(lg, "tared_at_start", False):
+            continue
+        off = vals.get(f"contact_offset_mm[{i}]" if len(logs) > 1 else "contact_offset_mm")
+        if off is None:
+            continue
+        contact = float(lg.contact_mm) + float(off)
+        first = float(lg.displacement_mm[0])
+        if contact > first + 1e-9:
+            return (f"it moves the contact of log {i} to {contact:.3g} mm, past its first sample ({first:.3g} mm), where "
+                    "the load cell was zeroed with the specimen already compressed")
+    return None
+
+
 def close_loop_logs(logs: Sequence[LogData], spec0: ForceModelSpec, *, boundary_declared: bool = True,
                     width: WidthSeries | None = None, max_strain: float | None = None,
                     rule: SelectionRule = SelectionRule(), candidates: Sequence[Effect] | None = None,
@@ -480,7 +502,7 @@ def close_loop_logs(logs: Sequence[LogData], spec0: ForceModelSpec, *, boundary_
                     heldout=fitter.heldout_rmse if len(fitter.logs) > 1 else None,
                     covariates=lambda res: log_covariates(fitter.logs, res.used),
                     describe=lambda s: s.describe(), unit="n", rule=rule, noise_rms=force_noise_rms(fitter.logs),
-                    veto=effect_veto)
+                    veto=lambda before, after: effect_veto(before, after) or tared_contact_veto(fitter.logs, after))
 
 
 # --- the loop on stress-stretch tables ---------------------------------------------------------

@@ -403,6 +403,14 @@ class _Par:
     log10: bool = False          # fitted as log10(value)
 
 
+def _tared(lg) -> bool:
+    """Whether a log was zeroed in contact (``tared_at_start``): its zero, one loaded sample's
+    reading, is off the force there by that sample's noise, a constant in every sample that the
+    fit takes as a parameter (``tare_n``).  Taken as exact, a zero 1.8 mN off had put mu at 706
+    Pa [704, 708] for a true 720 with no warning, and the loop's stand-ins further off."""
+    return lg is not None and bool(getattr(lg, "tared_at_start", False))
+
+
 def prony_names(n: int) -> list[str]:
     return [x for i in range(1, n + 1) for x in (f"g{i}", f"tau{i}_s")]
 
@@ -431,6 +439,7 @@ def parameter_names(spec: ForceModelSpec, logs: "int | Sequence[LogData]" = 1) -
     names = list(get_law(spec.law).param_names) + prony_names(spec.prony)
     sfx = (lambda i: f"[{i}]") if n_logs > 1 else (lambda i: "")
     names += [f"contact_offset_mm{sfx(i)}" for i, lg in enumerate(seq) if _shifted(spec, lg)]
+    names += [f"tare_n{sfx(i)}" for i, lg in enumerate(seq) if _tared(lg)]
     if spec.contact_offset:
         names += [f"{k}{sfx(i)}" for k in TOE_NAMES for i in range(n_logs)]
     if spec.baseline_drift:
@@ -605,14 +614,15 @@ def _tissue_force(time_s, x_mm, height_mm, area_m2, stress, g, tau, compliance, 
 
 
 def _log_force(log_: LogData, spec: ForceModelSpec, law: Law, tissue, g, tau, offset, compliance, b0, b1,
-               toe=FLAT_TOE, terms: PronyTerms | None = None):
+               toe=FLAT_TOE, tare: float = 0.0, *, terms: PronyTerms | None = None):
     stress = _stress_function(spec, law, tissue, log_.aspect)
     x = log_.displacement_mm - log_.contact_mm - offset
     f = _tissue_force(log_.time_s, x, log_.height_mm, log_.area_m2, stress, g, tau, compliance, toe, terms=terms)
     if log_.tared_at_start:
         # the load cell was zeroed at the first sample, the specimen already compressed (a
-        # contact before the record): what the cell reads is the force less the force there
-        f = f - f[0]
+        # contact before the record): what the cell reads is the force less the force there,
+        # less that sample's noise (``tare``: the zero's error, the same in every sample)
+        f = f - f[0] - tare
     if b0 or b1:
         f = f + b0 + b1 * (log_.time_s - log_.time_s[0])
     return f
@@ -641,7 +651,8 @@ def predict_force(log: LogData, spec: ForceModelSpec, params: Mapping) -> np.nda
     b1 = float(p.get("drift_n_per_s", 0.0)) if spec.baseline_drift else 0.0
     if spec.specimen_scatter:
         tissue = _scaled_tissue(law, tissue, float(np.exp(p.get(SCATTER_NAME, 0.0))))
-    return _log_force(log, spec, law, tissue, g, tau, offset, c, b0, b1, toe)
+    tare = float(p.get("tare_n", 0.0)) if _tared(log) else 0.0
+    return _log_force(log, spec, law, tissue, g, tau, offset, c, b0, b1, toe, tare)
 
 
 # --- problems: a residual function over an internal parameter vector ---------------------
@@ -775,6 +786,9 @@ class _LogProblem(_Problem):
                 lim = 0.2 * lg.height_mm
                 scale = min(0.02, 2.0 * lg.contact_sd_mm) if _has_prior(spec, lg) else 0.02
                 pars.append(_Par(f"contact_offset_mm{sfx(i)}", -lim, lim, scale))
+        for i, lg in enumerate(logs):
+            if _tared(lg):
+                pars.append(_Par(f"tare_n{sfx(i)}", -np.inf, np.inf, max(1e-3 * fmax, 1e-6)))
         if spec.contact_offset:
             for i, lg in enumerate(logs):
                 pars.append(_Par(f"contact_toe_mm{sfx(i)}", 0.0, 0.1 * lg.height_mm, 0.02))
@@ -813,7 +827,8 @@ class _LogProblem(_Problem):
         c = values["compliance_mm_per_n"] if spec.compliance else 0.0
         if spec.specimen_scatter and len(self.logs) > 1:
             tissue = _scaled_tissue(self.law, tissue, float(scatter_factors(values, len(self.logs))[i]))
-        return tissue, g, tau, off, c, b0, b1, toe
+        tare = values[f"tare_n{sfx}"] if _tared(self.logs[i]) else 0.0
+        return tissue, g, tau, off, c, b0, b1, toe, tare
 
     def predict(self, values: Mapping) -> list[np.ndarray]:
         return [_log_force(lg, self.spec, self.law, *self._split(values, i), terms=c)
@@ -875,7 +890,7 @@ class _LogProblem(_Problem):
                 v[f"g{j}"] = 0.5 / (spec.prony + 1)
                 v[f"tau{j}_s"] = float(t)
         for p in self.pars:
-            if p.name.startswith("contact_offset_mm"):
+            if p.name.startswith(("contact_offset_mm", "tare_n")):
                 v[p.name] = 0.0
             elif p.name.startswith(TOE_NAMES):
                 # c not 0: at a flat top the force is flat in c to first order, so a fit started
