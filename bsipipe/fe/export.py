@@ -908,6 +908,8 @@ def _src(quantity: str, origin: str, key: str | None = None) -> dict:
 
 
 def _csv(df: pd.DataFrame) -> str:
+    # -0 (a travel of -0.0 before the log starts) written as 0
+    df = df.apply(lambda c: c + 0.0 if c.dtype.kind == "f" else c)
     return df.to_csv(index=False, lineterminator="\n", float_format="%.12g")
 
 
@@ -982,8 +984,8 @@ def render_files(h: Handoff, cfg, sources: dict[str, str | None], *,
         "bsipipe export-fe: in situ indentation of the brain, CT (FE) frame",
         u.describe(),
         where,
-        f"FE time 0 = contact (log time {h.window.time_s:.6g} s); the analysis spans {step_s:.6g} s "
-        f"({step_s * per_s:.6g} {u.time}), contact to release",
+        f"FE time 0 = contact (log time {h.window.time_s:.6g} s); the analysis spans {step_s:.6g} s"
+        + (f" ({step_s * per_s:.6g} {u.time})" if u.time != "s" else "") + ", contact to release",
         (f"interface springs: {cfg.interface.stiffness_n_per_mm_per_mm2:g} N/mm per mm^2 x {sp.area_mm2:.6g} mm^2 / "
          f"{sp.n_springs} springs = {h.spring_deck_n_per_mm:.6g} N/mm each"
          if cfg.interface.lumping == "uniform" else

@@ -181,7 +181,8 @@ def point_configuration(points) -> dict:
     r"""How well a point set determines a rotation: its spread and how close it is to a line.
 
     With :math:`s_1 \ge s_2 \ge s_3` the singular values of the centred points (n, 3),
-    ``spread_mm`` :math:`= s_1/\sqrt n` (RMS distance from the centroid), ``lateral_mm``
+    ``spread_mm`` :math:`= s_1/\sqrt n` (the RMS distance from the centroid along the points'
+    main direction; the RMS distance itself is :math:`\sqrt{(s_1^2 + s_2^2 + s_3^2)/n}`), ``lateral_mm``
     :math:`= s_2/\sqrt n` (RMS distance from the best-fitting line) and ``line_ratio``
     :math:`= s_2/s_1`.  A rotation about the points' line is determined by the lateral spread
     only: its error is about FLE / ``lateral_mm`` (rad), so a small ``line_ratio`` (nearly
