@@ -399,3 +399,18 @@ def test_a_local_field_beyond_the_points_is_warned():
     assert w["local_max_rim_px"] == pytest.approx(0.004 * 0.97 * 500, rel=1e-3)
     assert _local_field_extrapolated("cam1", SimpleNamespace(local=None), pts, cov, warning) is None
     assert _local_field_extrapolated("cam1", cam, pts, {**cov, "hull_fraction": 0.95}, warning) is None
+
+
+def test_stereo_folders_without_a_shared_file_name_exit_2_at_once(tmp_path):
+    """Stereo frames are paired by file name: two folders sharing none had been exit 1 ("no
+    frame seen by both"), found after both cameras were calibrated.  Exit 2 before any work,
+    naming both folders' names."""
+    for side, prefix in (("left", ""), ("right", "r_")):
+        (tmp_path / side).mkdir()
+        for f in sorted(STEREO.glob(f"{side}0*.jpg"))[:4]:
+            shutil.copy(f, tmp_path / side / f"{prefix}{f.name[len(side):]}")
+    r = CliRunner().invoke(cli, ["calibrate", "--stereo", f"left={tmp_path / 'left'}", "--stereo",
+                                 f"right={tmp_path / 'right'}", "--pattern", "chessboard", "--grid", "9x6",
+                                 "--spacing-mm", "25", "--no-loop", "-o", str(tmp_path / "out")])
+    assert r.exit_code == 2 and "no file name is in both folders" in r.output and "r_01.jpg" in r.output, r.output
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())

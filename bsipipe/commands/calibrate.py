@@ -651,6 +651,24 @@ def _stereo_frames_belong(name: str, fit: dict, fits: dict, cfg, warnings: list,
         stereo_rms_px=fit["stereo_rms_px"], own_threshold_px=fit["threshold_px"]))
 
 
+def _stereo_names_shared(cfg) -> None:
+    """Two --stereo folders of image files whose names have none in common: exit 2 before any
+    calibration (frames are paired by file name; it had been exit 1, "no frame seen by both",
+    after both cameras were calibrated)."""
+    if len(cfg.stereo) != 2:
+        return
+    from ..io.images import list_image_files
+    (a, pa), (b, pb) = cfg.stereo.items()
+    if not (os.path.isdir(pa) and os.path.isdir(pb)):
+        return
+    na, nb = ({q.name for q in list_image_files(p)} for p in (pa, pb))
+    if len(na) > 1 and len(nb) > 1 and not na & nb:
+        ex = lambda names: ", ".join(sorted(names)[:2])          # noqa: E731
+        raise InputError(f"--stereo {a} and {b}: no file name is in both folders ({a}: {ex(na)}, ...; {b}: "
+                         f"{ex(nb)}, ...): the frames the two C-arms took at one instant must have the same file "
+                         "name in each", path=pb)
+
+
 def _failures(rejected: dict[str, str], max_reasons: int = 3) -> str:
     """The reasons views failed, each once with the views it applies to (the same wrong
     ``--grid`` fails every view alike)."""
@@ -681,6 +699,7 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
 
     cfg = build_config(config_path, images=images, pattern=pattern, grid=grid, spacing_mm=spacing_mm, view=view,
                        stereo=stereo, loop=loop, **options)
+    _stereo_names_shared(cfg)
     cameras: dict[str, list[tuple[str, str]]] = {}
     if cfg.images is not None:
         cameras.setdefault(cfg.view_name, []).append(("view", cfg.images))
