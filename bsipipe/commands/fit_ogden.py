@@ -318,8 +318,10 @@ def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig, per_log: dict[str, lis
         if given is None:
             try:
                 contact = detect_contact(time_s, disp, force)
-            except ContactNotInRecord as e:      # a record that cannot show it: the input's (exit 2)
-                raise InputError(
+            except ContactNotInRecord as e:
+                # exit 1, as the acceptance check takes it for the real preloaded Bluehill 2 file
+                # (a probe had asked for 2: the record is valid, the fit needs what it cannot show)
+                raise ProcessingError(
                     f"contact detection: {e.message}: give it with --contact-mm D (config key contact_mm), the "
                     f"displacement in mm past the first sample, positive in compression, at which the platen "
                     f"touched (negative: before the record began)", path=p) from None
