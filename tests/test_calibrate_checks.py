@@ -9,6 +9,7 @@ left-camera chessboards (``tests/data/real/opencv_stereo``).
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -414,3 +415,24 @@ def test_stereo_folders_without_a_shared_file_name_exit_2_at_once(tmp_path):
                                  "--spacing-mm", "25", "--no-loop", "-o", str(tmp_path / "out")])
     assert r.exit_code == 2 and "no file name is in both folders" in r.output and "r_01.jpg" in r.output, r.output
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
+def test_unpaired_stereo_frames_say_why(tmp_path):
+    """A stereo frame whose partner image is there but shows no target had been listed as having
+    "no same-named partner in the other folder"; the warning now says which: the partner's
+    detection failed (with its reason), or there is no file of that name."""
+    for side in ("left", "right"):
+        (tmp_path / side).mkdir()
+        for f in sorted(STEREO.glob(f"{side}*.jpg"))[:6]:
+            shutil.copy(f, tmp_path / side / f.name[len(side):])
+    blank = np.full(cv2.imread(str(tmp_path / "right" / "02.jpg"), cv2.IMREAD_GRAYSCALE).shape, 128, np.uint8)
+    cv2.imwrite(str(tmp_path / "right" / "02.jpg"), blank)
+    (tmp_path / "right" / "03.jpg").unlink()
+    r = CliRunner().invoke(cli, ["calibrate", "--stereo", f"left={tmp_path / 'left'}", "--stereo",
+                                 f"right={tmp_path / 'right'}", "--pattern", "chessboard", "--grid", "9x6",
+                                 "--spacing-mm", "25", "--no-loop", "-o", str(tmp_path / "out")])
+    assert r.exit_code == 0, r.output
+    d = json.loads((tmp_path / "out" / "calibration.json").read_text())
+    [w] = [w for w in d["warnings"] if w["code"] == "stereo-unpaired-frames"]
+    assert "02.jpg (in right's folder, its target not found" in w["message"], w["message"]
+    assert "03.jpg (no right file of that name)" in w["message"], w["message"]

@@ -875,8 +875,13 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
         if st.unpaired:
             warnings.append(warning(
                 "stereo-unpaired-frames",
-                f"calibrate: stereo {a}-{b}: frames without a same-named partner in the other folder are not used "
-                "for the stereo extrinsics: " + "; ".join(f"{v}: {', '.join(fs)}" for v, fs in st.unpaired.items()),
+                f"calibrate: stereo {a}-{b}: frames without a partner in the other camera are not used for the "
+                "stereo extrinsics: " + "; ".join(
+                    f"{v}: " + ", ".join(f + (f" (in {o}'s folder, its target not found: "
+                                              f"{cals[o].rejected[f'stereo/{f}']})" if f"stereo/{f}" in
+                                              (cals[o].rejected or {}) else f" (no {o} file of that name)")
+                                         for f in fs)
+                    for v, fs in st.unpaired.items() for o in [b if v == a else a]),
                 logger=log, view=f"{a}-{b}", frames=dict(st.unpaired)))
         if st.rms_px > LARGE_RMS_PX:
             warnings.append(warning(
