@@ -463,3 +463,24 @@ def test_a_bluehill2_export_in_minutes_is_bluehill2(tmp_path):
     ml = read_machine_log(p)
     assert ml.layout == "bluehill2"
     assert ml.time_s[-1] == pytest.approx(60.0 * frame["time_s"].iloc[-1], rel=1e-6)
+
+
+@pytest.mark.parametrize("how", ["bluehill2", "bluehill3", "names-row"])
+def test_two_exports_joined_in_one_file_are_named(tmp_path, how):
+    """Two Bluehill exports joined: the second's metadata had read as "the row has 2 fields ...
+    the line looks truncated", or its names row as text in a number column.  The message now
+    says a second record starts there (exit 2 at its line either way)."""
+    from bsipipe.synth.machine_log import synth_compression_log, write_bluehill2, write_bluehill3
+    frame, _ = synth_compression_log(seed=4)
+    writer = write_bluehill3 if how == "bluehill3" else write_bluehill2
+    a = writer(frame, tmp_path / "a.csv").read_text()
+    if how == "names-row":
+        lines = a.splitlines()
+        k = next(i for i, ln in enumerate(lines) if ln.startswith("Time"))
+        joined = a + "\n".join(lines[k:]) + "\n"
+    else:
+        joined = a + a
+    p = tmp_path / "joined.csv"
+    p.write_text(joined)
+    with pytest.raises(InputError, match=r"a second record starts inside the data"):
+        read_machine_log(p)

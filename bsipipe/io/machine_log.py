@@ -372,7 +372,18 @@ def read_machine_log(path: str | os.PathLike) -> MachineLog:
         raise InputError(f"no data rows after the header at line {h + 1} (empty or truncated file)",
                          path=path, line=first + 1)
     need = max(roles[r] for r in _REQUIRED) + 1
+    header = [normalise_name(c) for c in names_row]
     for k, r in enumerate(rows):
+        # another export's rows after the data (two files joined): its metadata ("Key : Sub",
+        # a "Results Table"/"Raw Data" title) or its own names row had read as a truncated line
+        # or as text in a number column
+        first_cell = r[0].strip() if r else ""
+        if k and first_cell and not looks_numeric(first_cell) and (
+                " : " in first_cell or normalise_name(first_cell) in ("resultstable1", "rawdata")
+                or [normalise_name(c) for c in r[:len(header)]] == header):
+            raise InputError(f"a second record starts inside the data ('{first_cell}', after "
+                             f"{k} data rows): one record per file is supported; split the file", path=path,
+                             line=data_idx[k] + 1)
         if len(r) < need:
             if r and not looks_numeric(r[0]) and sum(bool(c) for c in r) == 1:
                 raise InputError(f"a second block '{r[0]}' starts inside the data; one record "
