@@ -389,17 +389,16 @@ def test_a_local_field_beyond_the_points_is_warned():
     from types import SimpleNamespace
 
     from bsipipe.commands.calibrate import _local_field_extrapolated
-    from bsipipe.quality import warning
     cam = SimpleNamespace(local=lambda p: 0.004 * (np.asarray(p, float) - 512.0), image_size=(1024, 1024))
     g = np.linspace(250.0, 774.0, 12)
     pts = np.array([(x, y) for x in g for y in g])
     cov = {"hull_fraction": 0.45, "field_of_view": {"centre_px": [512.0, 512.0], "radius_px": 500.0}}
-    w = _local_field_extrapolated("cam1", cam, pts, cov, warning)
+    w = _local_field_extrapolated("cam1", cam, pts, cov)
     assert w["code"] == "local-distortion-extrapolated"
     assert w["local_max_inside_px"] == pytest.approx(0.004 * 262 * np.sqrt(2), rel=1e-6)
     assert w["local_max_rim_px"] == pytest.approx(0.004 * 0.97 * 500, rel=1e-3)
-    assert _local_field_extrapolated("cam1", SimpleNamespace(local=None), pts, cov, warning) is None
-    assert _local_field_extrapolated("cam1", cam, pts, {**cov, "hull_fraction": 0.95}, warning) is None
+    assert _local_field_extrapolated("cam1", SimpleNamespace(local=None), pts, cov) is None
+    assert _local_field_extrapolated("cam1", cam, pts, {**cov, "hull_fraction": 0.95}) is None
 
 
 def test_stereo_folders_without_a_shared_file_name_exit_2_at_once(tmp_path):

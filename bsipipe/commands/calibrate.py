@@ -261,7 +261,7 @@ def _coverage(name: str, sources, points_px):
 LOCAL_COVERAGE_MIN = 0.9
 
 
-def _local_field_extrapolated(name: str, camera, points_px, coverage: dict, warning) -> dict | None:
+def _local_field_extrapolated(name: str, camera, points_px, coverage: dict) -> dict | None:
     """A ``local-distortion-extrapolated`` warning where the camera's model holds a
     local-distortion field (a spline through the residuals, :class:`LocalField`) and the
     target's points cover under :data:`LOCAL_COVERAGE_MIN` of the field: beyond them the spline
@@ -274,6 +274,8 @@ def _local_field_extrapolated(name: str, camera, points_px, coverage: dict, warn
         return None
     from matplotlib.path import Path as _Path
     from scipy.spatial import ConvexHull, QhullError
+
+    from ..quality import warning
 
     fov = coverage.get("field_of_view") or {}
     centre, radius = fov.get("centre_px"), fov.get("radius_px")
@@ -621,13 +623,14 @@ def _own_views_fit(name: str, views: dict, image_size, spec, centre=None) -> dic
             "stereo_rms_px": float(np.median(posed_rms(cal.camera, shared)))}
 
 
-def _stereo_frames_belong(name: str, fit: dict, fits: dict, cfg, warnings: list, warning) -> None:
+def _stereo_frames_belong(name: str, fit: dict, fits: dict, cfg, warnings: list) -> None:
     """The check of :func:`_own_views_fit`: --stereo frames that do not fit the camera's own
     --view frames are another camera's (exit 2 where they fit the other --stereo camera's own
     frames: the two --stereo folders given the wrong way round), or a warning.  Swapped, each
     camera had calibrated with 6 of its 18 views from the other C-arm: fx 39 px off, the stereo
     rotation 177 degrees off, its RMS 0.27 px, exit 0."""
     from ..imaging.calibrate import posed_rms
+    from ..quality import warning
     if fit["stereo_rms_px"] <= fit["threshold_px"]:
         return
     for o in [o for o in cfg.stereo if o != name and o in fits]:
@@ -799,7 +802,7 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
         fit = _own_views_fit(name, views, image_size, final.camera.spec, None if size[2] == "none" else size[2])
         if fit is not None:
             own_fits[name] = fit
-            _stereo_frames_belong(name, fit, own_fits, cfg, warnings, warning)
+            _stereo_frames_belong(name, fit, own_fits, cfg, warnings)
         final.std_jackknife = jackknife_std(folds)
         _focal_length_determined(name, final, sources[0][1])
         if len(final.views) < MIN_HELDOUT_VIEWS:
@@ -843,7 +846,7 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
         d["coverage"], warn = _coverage(name, sources, pts)
         if warn:
             warnings.append(warn)
-        warn = _local_field_extrapolated(name, final.camera, pts, d["coverage"], warning)
+        warn = _local_field_extrapolated(name, final.camera, pts, d["coverage"])
         if warn:
             warnings.append(warn)
         if figures:

@@ -226,12 +226,10 @@ def fe_solve(deck: str | os.PathLike, *, out: str | os.PathLike, timeout_s: floa
         frd = work / "job.frd"
         if not frd.is_file():
             raise ProcessingError("CalculiX wrote no .frd file: the deck needs a *NODE FILE request for U", path=deck)
-        dat = None
-        for name in ("job.frd", "job.dat"):
-            if (work / name).is_file():
-                data = (work / name).read_bytes()
-                rs.add_bytes(name, data)
-                dat = data if name == "job.dat" else dat
+        written = {name: (work / name).read_bytes() for name in ("job.frd", "job.dat") if (work / name).is_file()}
+        for name, data in written.items():
+            rs.add_bytes(name, data)
+        dat = written.get("job.dat")
         rs.add_text("ccx.log", res.stdout)
         first = read_frd(frd)   # the last result; tells how many there are
         peaks = []

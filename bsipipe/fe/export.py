@@ -764,7 +764,7 @@ def build_handoff(cfg, *, fit: dict, transform, markers_ct: pd.DataFrame, log: L
     if clip is not None:
         warnings.append(
             f"the log's force stops at {clip['level_n']:.6g} N (after the contact baseline) on {clip['n_samples']} "
-            f"samples over {clip['travel_mm']:.3g} mm of travel, where the 20 samples before rose "
+            f"samples over {clip['travel_mm']:.3g} mm of travel, where the {clip['n_before']} samples before rose "
             f"{clip['expected_rise_n']:.3g} N over as much: a load cell at the end of its range; target_force.csv "
             "there is the cell's limit, not the brain's force")
     markers = marker_table(markers_ct, names, window.time_s + offset)

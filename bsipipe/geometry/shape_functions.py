@@ -198,25 +198,13 @@ def _wedge15_d(xi):
 
 
 def _wedge_contains(xi, tol):
-    return (xi[:, 0] >= -tol) & (xi[:, 1] >= -tol) & (xi[:, 0] + xi[:, 1] <= 1.0 + tol) & (np.abs(xi[:, 2]) <= 1.0 + tol)
+    return _tet_contains(xi[:, :2], tol) & (np.abs(xi[:, 2]) <= 1.0 + tol)
 
 
 def _wedge_clamp(xi):
     out = np.empty_like(xi)
-    out[:, :2] = _tri_clamp(xi[:, :2])
+    out[:, :2] = _simplex_clamp(xi[:, :2])
     out[:, 2] = np.clip(xi[:, 2], -1.0, 1.0)
-    return out
-
-
-def _tri_clamp(gh):
-    """Nearest point of the reference triangle {g, h >= 0, g + h <= 1} (Euclidean)."""
-    out = np.clip(gh, 0.0, None)
-    over = out.sum(axis=1) > 1.0
-    if np.any(over):
-        v = gh[over]
-        t = (v.sum(axis=1) - 1.0) / 2.0
-        out[over] = np.clip(v - t[:, None], 0.0, 1.0)
-        out[over] /= np.maximum(out[over].sum(axis=1), 1.0)[:, None]
     return out
 
 
@@ -232,9 +220,10 @@ def _hex_clamp(xi):
     return np.clip(xi, -1.0, 1.0)
 
 
-def _tet_clamp(xi):
-    """Nearest point of the reference tetrahedron in natural coordinates (Euclidean projection
-    onto the simplex {xi >= 0, sum <= 1})."""
+def _simplex_clamp(xi):
+    """Nearest point of the reference simplex {xi >= 0, sum <= 1} (the tetrahedron's, or the
+    wedge's triangle in its first two coordinates), by Euclidean projection in natural
+    coordinates."""
     out = np.clip(xi, 0.0, None)
     over = out.sum(axis=1) > 1.0
     if np.any(over):
@@ -242,7 +231,7 @@ def _tet_clamp(xi):
         v = xi[over]
         u = -np.sort(-v, axis=1)
         css = np.cumsum(u, axis=1) - 1.0
-        k = np.arange(1, 4)
+        k = np.arange(1, v.shape[1] + 1)
         rho = np.sum(u - css / k > 0, axis=1)
         theta = css[np.arange(len(v)), rho - 1] / rho
         out[over] = np.clip(v - theta[:, None], 0.0, None)
@@ -270,7 +259,7 @@ class ElementType:
     def clamp(self, xi) -> np.ndarray:
         """The nearest natural coordinates inside the reference element."""
         xi = np.atleast_2d(np.asarray(xi, dtype=float))
-        return {"hex": _hex_clamp, "tet": _tet_clamp, "wedge": _wedge_clamp}[self.family](xi)
+        return {"hex": _hex_clamp, "tet": _simplex_clamp, "wedge": _wedge_clamp}[self.family](xi)
 
 
 ELEMENTS: dict[str, ElementType] = {

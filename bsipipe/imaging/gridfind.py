@@ -754,14 +754,7 @@ def chessboard_extension(image: np.ndarray, corners_px: np.ndarray, grid: tuple[
             added = dict(zip(keys, pred))
             known.update(added)
             H = line_homography(axis, [new, edge, edge - sgn])
-            cells = np.zeros((hi[other] - lo[other], 2))
-            cells[:, other] = np.arange(lo[other], hi[other]) + 0.5
-            cells[:, axis] = new + 0.5 * sgn
-            beyond = _sample_cells(g, H, cells) if H is not None else np.full(len(cells), np.nan)
-            cells[:, axis] = edge - 0.5 * sgn
-            inside = _sample_cells(g, H, cells) if H is not None else np.full(len(cells), np.nan)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                ratio = np.diff(beyond) / np.diff(inside)
+            ratio = _cell_step_ratio(g, H, axis, lo[other], hi[other], new + 0.5 * sgn, edge - 0.5 * sgn)
             seen = np.isfinite(ratio)
             if (seen.sum() < max(2, 0.75 * len(ratio))
                     or np.mean(ratio[seen] > CHESS_EXTEND_RATIO) < CHESS_EXTEND_FRACTION):
@@ -774,6 +767,23 @@ def chessboard_extension(image: np.ndarray, corners_px: np.ndarray, grid: tuple[
                 hi[axis] = new
             extra[side] += 1
     return tuple(extra)
+
+
+def _cell_step_ratio(g: np.ndarray, H, axis: int, lo: int, hi: int, beyond: float, inside: float) -> np.ndarray:
+    """The steps of intensity between neighbouring cells along a line of cells at ``beyond``
+    (grid units along ``axis``), over those of the line at ``inside``, for the cells ``lo`` to
+    ``hi`` across (:func:`_sample_cells` through the homography ``H``; NaN where ``H`` is None
+    or a cell is outside the image): about +1 where the board continues in step, -1 where it
+    continues a square further, 0 where the line ``beyond`` is the margin."""
+    other = 1 - axis
+    cells = np.zeros((hi - lo, 2))
+    cells[:, other] = np.arange(lo, hi) + 0.5
+    rows = []
+    for at in (beyond, inside):
+        cells[:, axis] = at
+        rows.append(_sample_cells(g, H, cells) if H is not None else np.full(len(cells), np.nan))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.diff(rows[0]) / np.diff(rows[1])
 
 
 def chessboard_edge_lines(image: np.ndarray, corners_px: np.ndarray, grid: tuple[int, int]) -> tuple[bool, ...]:
@@ -793,23 +803,12 @@ def chessboard_edge_lines(image: np.ndarray, corners_px: np.ndarray, grid: tuple
     P = np.asarray(corners_px, np.float64).reshape(R, C, 2)
     out = []
     for axis, sgn in ((0, -1), (0, 1), (1, -1), (1, 1)):
-        other = 1 - axis
         n_ax, n_other = (C, R) if axis == 0 else (R, C)
         edge = 0 if sgn < 0 else n_ax - 1
         lines = [edge - sgn * k for k in range(3)]
         src = np.array([(a, b) for a in range(C) for b in range(R) if (a, b)[axis] in lines], np.float64)
-        H = cv2.findHomography(src, np.array([P[int(b), int(a)] for a, b in src]))[0]
-        if H is None:
-            out.append(False)
-            continue
-        cells = np.zeros((n_other - 1, 2))
-        cells[:, other] = np.arange(n_other - 1) + 0.5
-        cells[:, axis] = edge + 0.5 * sgn
-        beyond = _sample_cells(g, H, cells)
-        cells[:, axis] = edge - 0.5 * sgn
-        inside = _sample_cells(g, H, cells)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            ratio = np.abs(np.diff(beyond) / np.diff(inside))
+        H = cv2.findHomography(src, np.array([P[int(b), int(a)] for a, b in src]))[0]     # None: no ratio
+        ratio = np.abs(_cell_step_ratio(g, H, axis, 0, n_other - 1, edge + 0.5 * sgn, edge - 0.5 * sgn))
         seen = np.isfinite(ratio)
         out.append(bool(seen.sum() >= max(2, 0.75 * len(ratio))
                         and np.mean(ratio[seen] < CHESS_EXTEND_RATIO) >= CHESS_EXTEND_FRACTION))

@@ -356,7 +356,7 @@ def abaqus_node_sets(path) -> dict[str, np.ndarray]:
         A data line that is not a list of integers (naming the file and line).
     """
     from ..errors import InputError
-    from .fe_results import _inp_lines
+    from .fe_results import _inp_lines, element_line_continues
 
     sets: dict[str, list[int]] = {}
     elsets: dict[str, list[int]] = {}
@@ -407,7 +407,7 @@ def abaqus_node_sets(path) -> dict[str, np.ndarray]:
             except ValueError:
                 raise InputError(f"element data must be integers, got {line!r}", path=f, line=no) from None
             elem.extend(vals)
-            if not line.endswith(",") and len(vals) < 16 and elem:
+            if elem and not element_line_continues(line, vals):
                 elements[elem[0]] = elem[1:]
                 if name:
                     elsets[name].append(elem[0])

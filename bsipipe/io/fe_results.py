@@ -152,6 +152,12 @@ def _keyword(line: str) -> tuple[str, dict[str, str]]:
     return parts[0].upper(), params
 
 
+def element_line_continues(line: str, values) -> bool:
+    """Whether an ``*ELEMENT`` data line goes on on the next: it ends in a comma, or it is full
+    (16 entries, ABAQUS's maximum)."""
+    return line.rstrip().endswith(",") or len(values) >= 16
+
+
 def _inp_lines(path, seen=None):
     """(path, line number, text) of an ABAQUS input file with ``*INCLUDE`` expanded."""
     path = Path(path)
@@ -331,8 +337,7 @@ def read_abaqus_mesh(path, *, length_unit: str = "mm") -> FEMesh:
             inst[1].append((s, f, no))
         elif mode == "element":
             vals = [v for v in (v.strip() for v in s.split(",")) if v != ""]
-            # a line ending in a comma, or full (16 entries, ABAQUS's maximum), continues
-            cont = s.endswith(",") or len(vals) >= 16
+            cont = element_line_continues(s, vals)
             if etype is None:
                 if not pending:
                     skipped[written] = skipped.get(written, 0) + 1

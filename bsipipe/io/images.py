@@ -416,11 +416,11 @@ def _read_series(files: list[Path]) -> _Series | None:
     if inst is not None and len(set(inst)) == n:
         order, how = np.argsort(inst, kind="stable"), "InstanceNumber"
         acq = next((k for k in _ACQUISITION_STAMPS if k in stamps), None)
-        if acq is not None and not np.array_equal(np.argsort(stamps[acq], kind="stable"), order):
+        by_t = np.argsort(stamps[acq], kind="stable") if acq is not None else order
+        if not np.array_equal(by_t, order):
             # numbers that disagree with the acquisition clock (a writer that numbers the files
             # as it exports them): the clock orders the frames; taken in the numbers' order the
             # frames had run backwards or shuffled and their times were dropped as not increasing
-            by_t = np.argsort(stamps[acq], kind="stable")
             moved = [files[i].name for i, j in zip(order, by_t) if i != j]
             log.warning("%s: the InstanceNumbers of %d of the %d DICOM files disagree with their %s (%s%s): "
                         "the files are taken in the order of their acquisition times", files[0].parent,

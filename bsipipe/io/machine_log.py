@@ -870,7 +870,8 @@ def clipped_top(disp: np.ndarray, force: np.ndarray, n_before: int = 20) -> dict
     spread over a travel along which the ``n_before`` samples before the first of them rise by
     more than 3 times the larger of their scatter and the log's force resolution (so a coarse
     log whose top few samples round alike, or a hold, is not called clipped).  Returns the
-    first such sample's index, the level (N), the count and that expected rise, or None.
+    first such sample's index, the level (N), the count, that expected rise and ``n_before``,
+    or None.
 
     A 0.5 N ceiling on 18 of 616 samples (the last 3 %) of the probe's log had been fitted as
     a machine compliance of 1.39 mm/N with alpha turned to +19.4, unsaid.
@@ -907,4 +908,4 @@ def clipped_top(disp: np.ndarray, force: np.ndarray, n_before: int = 20) -> dict
     if not rise > 3.0 * max(scatter, resolution):
         return None
     return {"first": first, "level_n": top, "n_samples": int(len(idx)), "travel_mm": span,
-            "expected_rise_n": rise}
+            "expected_rise_n": rise, "n_before": n_before}
