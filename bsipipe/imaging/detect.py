@@ -1203,10 +1203,38 @@ def _gaussian_fit(s: np.ndarray, geo: _Geo, start: np.ndarray, sigma0: float,
     return P[:, :2], amp, sig, ok
 
 
+#: Pixels this close to the intensifier field's edge (its half-level circle) or beyond are left
+#: out of a marker's fits: the rim's fall to the dark surround is no marker's background.
+FIELD_RIM_PX = 2.5
+
+
+def _field_circle(fov: "FieldOfView | None") -> tuple[float, float, float] | None:
+    """The circle (cx, cy, r) of the pixels a fit may use in ``fov``'s field (None: no field)."""
+    if fov is None or not fov.found:
+        return None
+    return float(fov.centre_px[0]), float(fov.centre_px[1]), float(fov.radius_px) - FIELD_RIM_PX
+
+
+def _in_field(ix: np.ndarray, iy: np.ndarray, geo: "_Geo", field) -> np.ndarray | None:
+    """Per patch (N, P*P), False on the pixels outside the field's circle ``field``; None
+    where every patch lies inside it."""
+    if field is None or len(ix) == 0:
+        return None
+    cx, cy, r = field
+    reach = geo.half * math.sqrt(2.0)
+    if (np.hypot(ix - cx, iy - cy) + reach <= r).all():
+        return None
+    px = ix[:, None] + geo.dx[None, :] - cx
+    py = iy[:, None] + geo.dy[None, :] - cy
+    return px * px + py * py <= r * r
+
+
 def _measure(img: np.ndarray, pts: np.ndarray, diameter_px: float, sign: float, st: DetectionSettings,
-             others: np.ndarray | None, noise: np.ndarray | None = None) -> dict:
+             others: np.ndarray | None, noise: np.ndarray | None = None, field=None) -> dict:
     """Sub-pixel measurement of candidates near the pixels ``pts`` (N, 2); arrays of
-    :data:`COLUMNS` except ``snr`` and ``area_px``."""
+    :data:`COLUMNS` except ``snr`` and ``area_px``.  ``field``: the circle (cx, cy, r) of the
+    intensifier's field (:func:`_field_circle`); pixels beyond it are neither the marker nor
+    its background (a marker near the rim had been pulled towards the dark surround)."""
     blur = st.smooth_px(diameter_px)
     radius = st.window_px(diameter_px)
     geo = _geo(float(diameter_px), float(blur), float(radius))
@@ -1215,6 +1243,9 @@ def _measure(img: np.ndarray, pts: np.ndarray, diameter_px: float, sign: float, 
     ix, iy = ixy[:, 0], ixy[:, 1]
     xy = ixy.astype(float)
     valid = _neighbour_valid(xy, others, ix, iy, geo)
+    inside = _in_field(ix, iy, geo, field)
+    if inside is not None:
+        valid = inside if valid is None else valid & inside
     raw = _gather(img, ix, iy, geo.half)
     s = _plane_removed(raw, geo, sign, valid)
     if st.background == "edge":
@@ -1383,15 +1414,16 @@ def _peak_areas(ts: np.ndarray, xs: np.ndarray, ys: np.ndarray, diameter_px: flo
     return xs[keep], ys[keep], area[keep]
 
 
-def _finish(img, xs, ys, area, noise, diameter_px, polarity, st, mask=None, neighbours=None) -> dict:
+def _finish(img, xs, ys, area, noise, diameter_px, polarity, st, mask=None, neighbours=None, field=None) -> dict:
     """Measure candidates, keep the good ones, merge duplicates.  Arrays of COLUMNS.
-    ``neighbours`` (default: the candidates) are the markers masked out of each fit."""
+    ``neighbours`` (default: the candidates) are the markers masked out of each fit;
+    ``field`` the circle of the intensifier's field (:func:`_measure`)."""
     pts = np.column_stack([xs, ys]).astype(float)
     if len(pts) == 0:
         return {c: np.zeros(0) for c in COLUMNS}
     noise = np.asarray(noise, float)
     m = _measure(img, pts, diameter_px, 1.0 if polarity == "dark" else -1.0, st,
-                 pts if neighbours is None else neighbours, noise)
+                 pts if neighbours is None else neighbours, noise, field)
     m["area_px"] = np.asarray(area, float)
     m["snr"] = m["amplitude"] / np.maximum(noise, 1e-9)
     keep = np.isfinite(m["x_px"]) & (m["snr"] >= st.min_snr) & (m["elongation"] <= st.max_elongation)
@@ -2041,7 +2073,8 @@ def detect_arrays(frame: np.ndarray, diameter_px: float, polarity: Polarity = "d
             xs, ys, area = xs[new], ys[new], area[new]
             if len(xs) == 0:
                 return {c: np.zeros(0) for c in COLUMNS}
-    m = _finish(img, xs, ys, area, np.full(len(xs), noise), diameter_px, polarity, st, region, neighbours)
+    m = _finish(img, xs, ys, area, np.full(len(xs), noise), diameter_px, polarity, st, region, neighbours,
+                _field_circle(region.fov))
     order = np.lexsort((m["x_px"], m["y_px"]))
     return {c: m[c][order] for c in COLUMNS}
 
@@ -2193,7 +2226,8 @@ def window_arrays(frame: np.ndarray, centres_xy, radii_px, diameter_px: float, p
     allpts = np.column_stack([px, py]).astype(float)
     if not near.all():
         px, py, area, wi = px[near], py[near], area[near], wi[near]
-    return _finish(img, px, py, area, noise[wi], diameter_px, polarity, st, neighbours=allpts)
+    return _finish(img, px, py, area, noise[wi], diameter_px, polarity, st, neighbours=allpts,
+                   field=_field_circle(fov))
 
 
 @functools.lru_cache(maxsize=16)
