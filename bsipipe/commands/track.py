@@ -884,7 +884,7 @@ def _track_views(cfg, views, seed_df, d: dict, det, tk, progress: bool, rois: di
     :func:`~bsipipe.io.images.prefetched` for every source, so videos and stacks overlap too);
     returns the per-view tables, the events, the per-view info, each view's first frame (for
     the overlay figure) and the sha256 of every frame file (from the bytes decoded)."""
-    from ..imaging.detect import is_blank
+    from ..imaging.detect import is_blank, temporal_noise_correlation
     from ..imaging.track import track_view
     from ..io.images import count_frames, decode_workers, iter_frames, prefetched
 
@@ -905,12 +905,27 @@ def _track_views(cfg, views, seed_df, d: dict, det, tk, progress: bool, rois: di
         except Exception:  # a count is only for the progress bar
             n = None
         bar = _progress(n, v, progress)
-        state = {"n": 0, "shape": None, "range": 0.0, "blank": []}
+        state = {"n": 0, "shape": None, "range": 0.0, "blank": [], "lag": []}
+        lag_every = LAG_EVERY if not n else max(3, n // LAG_TRIPLES)
+        crops: list = []
 
-        def on_frame(i, img, v=v, bar=bar, state=state):
+        def on_frame(i, img, v=v, bar=bar, state=state, crops=crops):
             if state["n"] == 0:
                 first_images[v] = np.array(img, copy=True)
                 state["shape"] = list(img.shape)
+            # frames averaged over time (intensifier lag, a recursive noise filter): the noise
+            # of three consecutive frames, every lag_every-th, from the central quarter's pixels
+            k = state["n"] % lag_every
+            if k >= lag_every - 3 or lag_every <= 3:
+                h, w = img.shape[:2]
+                crops.append(np.array(img[h // 4:3 * h // 4:2, w // 4:3 * w // 4:2], copy=True))
+                if len(crops) == 3:
+                    rho = temporal_noise_correlation(*crops)
+                    if rho is not None:
+                        state["lag"].append(rho)
+                    crops.clear()
+            else:
+                crops.clear()
             state["n"] += 1
             # frames without a picture, for the frames-without-markers warning: only a frame
             # whose sampled range falls to a quarter of the widest seen so far is tested whole.
@@ -943,11 +958,55 @@ def _track_views(cfg, views, seed_df, d: dict, det, tk, progress: bool, rois: di
         events.extend(res.events)
         info[v] = {"path": path, "n_frames": state["n"], "frame_shape_px": state["shape"], "field_of_view": res.fov,
                    "settings": res.settings, "frames_without_picture": state["blank"],
+                   "temporal_noise": _temporal_noise(state["lag"]),
                    "source_stamped": state.get("stamped", False)}
         nf = int(res.table["found"].sum())
         log.info("track: %s: %d frames, %d markers, %d of %d positions found, %d events", v, state["n"],
                  res.table["marker"].nunique(), nf, len(res.table), len(res.events))
     return tables, events, info, first_images, frame_hashes
+
+
+#: The noise correlation of consecutive frames is measured on three consecutive frames out of
+#: every so many that the view gives LAG_TRIPLES triples (every LAG_EVERY where its length is
+#: unknown); at LAG_RHO or more (median of at least LAG_MIN_TRIPLES triples) the frames are said
+#: to be averaged over time.
+LAG_EVERY = 10
+LAG_TRIPLES = 30
+LAG_RHO = 0.1
+LAG_MIN_TRIPLES = 5
+
+
+def _temporal_noise(rhos: list[float]) -> dict:
+    """A view's lag-1 noise correlation (median over its frame triples,
+    :func:`~bsipipe.imaging.detect.temporal_noise_correlation`) and the delay it implies: a
+    recursive average :math:`y_t = (1-\rho) x_t + \rho y_{t-1}` shows a marker moving at a
+    steady speed :math:`\rho/(1-\rho)` frames behind where it is."""
+    if not rhos:
+        return {"rho": None, "n_triples": 0, "lag_frames": None}
+    rho = float(np.median(rhos))
+    return {"rho": rho, "n_triples": len(rhos), "lag_frames": rho / (1.0 - rho) if 0.0 < rho < 1.0 else 0.0}
+
+
+def _lag_warning(info: dict, views) -> dict | None:
+    """``frames-averaged``: views whose consecutive frames share their noise (:data:`LAG_RHO`)."""
+    from ..quality import warning
+    hit = {v: info[v]["temporal_noise"] for v in views
+           if (info[v].get("temporal_noise") or {}).get("rho") is not None
+           and info[v]["temporal_noise"]["rho"] >= LAG_RHO and info[v]["temporal_noise"]["n_triples"] >= LAG_MIN_TRIPLES}
+    if not hit:
+        return None
+    return warning(
+        "frames-averaged",
+        "track: consecutive frames share their noise ("
+        + "; ".join(f"{v}: lag-1 correlation {t['rho']:.2f} over {t['n_triples']} frame triples" for v, t in hit.items())
+        + "): each frame is partly the ones before (image-intensifier lag, the C-arm's recursive noise filter, or a "
+          "lossy video codec's prediction between frames). A moving marker's image trails it: its centre lags the "
+          "motion by about "
+        + ", ".join(f"{t['lag_frames']:.2f} frame" for t in hit.values())
+        + " (speed x that: ray gaps cannot show a lag both views share), and the errors of consecutive centres are "
+          "correlated, so the stated sds, smoothed ones most, are too small. Switch the temporal filter off "
+          "(or record the last-image-hold frames without it) for motion measurements",
+        log, views={v: t for v, t in hit.items()})
 
 
 def _rename_markers(table: pd.DataFrame, events: list[dict], view: str, names: dict) -> None:
@@ -1284,6 +1343,9 @@ def _sequence_warnings(table: pd.DataFrame, events: list[dict], cfg, views, info
             + _frames_listed(empty) + "): " + "; ".join(why) + "; the markers were followed across them (lost and "
               "refound events), the frames have no 3-D point from that view",
             log, frames=empty, without_picture=dark, with_picture=lit))
+    lag = _lag_warning(info, views)
+    if lag is not None:
+        out.append(lag)
     rare = _rarely_found(table) if seeded else {}
     if rare:
         out.append(warning(
