@@ -44,12 +44,25 @@ Warnings (``registration.json`` ``warnings``, also logged; codes):
     they were first found: markers_ct.csv's displacements, from the registration frame, miss
     that motion (``--frame`` of the first frame, where three references are found there).
 ``head-motion``
-    The references move together over the trial (more than 5 times their tracking noise):
-    the head moved relative to the C-arms.  Every frame with three references or more is
+    The references move together over the trial (more than :data:`HEAD_MOTION_FACTOR` times
+    their per-axis tracking noise with each frame's rigid motion taken out,
+    ``skull_motion.tracking_noise_mm``; three references suffice): the head moved relative
+    to the C-arms.  Every frame with three references or more is
     brought back onto the skull (:func:`_skull_fixed`: the references' rigid motion from the
     registration frame taken out of all its markers; ``markers_ct.csv`` column
     ``head_motion_mm``, ``skull_motion.compensation`` with the references' RMS motion before
     and after); frames with fewer are listed and left as they were.
+``reference-motion-unresolved``
+    References in use move relative to each other over the trial, but each one's motion is
+    explained as well by another's (the head turned and a reference moved out of the plane
+    of four nearly coplanar ones, which looks like a tilt moving any of them; or two moved):
+    none is left out, and the head-motion compensation and the displacements carry part of
+    that motion.
+``marker-missing-in-registration-frame``
+    A marker not found in the registration frame (found in others): its displacements are
+    from a frame-F position estimated from its nearest frames (linear in time between the
+    nearest before and after, else the nearest one), named with the frames used and how far
+    it moved between them.
 ``tre-not-estimated``
     No degrees of freedom left for the FLE.
 ``tre-unbounded``
@@ -57,7 +70,10 @@ Warnings (``registration.json`` ``warnings``, also logged; codes):
     expected TRE is unbounded (``tre_mm`` empty); the perturbation's p95 still bounds it.
 
 The tracking noise and the references' motion test use the raw 3-D points
-(``x_mm_raw, y_mm_raw, z_mm_raw``) where ``markers3d.csv`` has them, the fit the smoothed.
+(``x_mm_raw, y_mm_raw, z_mm_raw``) where ``markers3d.csv`` has them (decided per reference: one
+without a raw point uses its smoothed ones, ``tracking_noise.smoothed_references``), the fit
+the smoothed.  A reference's motion test takes out the other references' translation, or
+their rigid motion where they turn (:func:`~bsipipe.geometry.registration.reference_motion`).
 """
 
 from __future__ import annotations
@@ -94,6 +110,10 @@ CT_FLE_MAX_MM = 0.5
 #: 3-D tracking noise lie on one line as far as the data can tell: exit 2 (a spread of 0.02 mm
 #: at 0.017 mm of noise had registered with a rotation 10.5 degrees off, exit 0).
 LINE_NOISE_FACTOR = 5.0
+#: The references moving together by more than this many times their per-axis tracking noise
+#: (each frame's rigid motion taken out: :func:`~bsipipe.geometry.registration.rigid_tracking_noise`)
+#: is head motion (``head-motion``).
+HEAD_MOTION_FACTOR = 5.0
 #: Lateral spread of the references over their length (``line_ratio`` of
 #: :func:`~bsipipe.geometry.registration.point_configuration`) below which they are nearly collinear.
 LINE_RATIO_MIN = 0.1
@@ -283,18 +303,53 @@ def _tracks_array(tracks: pd.DataFrame, names: Sequence[str], *column_sets: Sequ
     return (frames, time, *out)
 
 
+def estimate_frame_positions(tracks: pd.DataFrame, frame: int) -> dict[str, dict]:
+    """X-ray positions in ``frame`` of the markers not found there but found in other frames.
+
+    Linear in time between the nearest frames found before and after ``frame``; with frames on
+    one side only, the nearest one's position.  Returns ``{marker: {"xyz": (3,), "frames":
+    [frames used], "change_mm": ..}}``, ``change_mm`` the marker's motion between the two
+    frames used (one side only: between the nearest frame and the next found beyond it), the
+    scale of the estimate's error; markers never found are left out."""
+    ok = tracks[_found(tracks)]
+    here = set(ok.loc[ok["frame"] == frame, "marker"])
+    t_of = tracks.groupby("frame")["time_s"].first()
+    t_of = pd.Series(np.where(np.isfinite(t_of.to_numpy(float)), t_of.to_numpy(float),
+                              t_of.index.to_numpy(float)), index=t_of.index)
+    out = {}
+    for m, g in ok[~ok["marker"].isin(here)].groupby("marker", sort=True):
+        g = g.sort_values("frame")
+        f = g["frame"].to_numpy(np.int64)
+        x = g[["x_mm", "y_mm", "z_mm"]].to_numpy(float)
+        before, after = np.flatnonzero(f < frame), np.flatnonzero(f > frame)
+        if len(before) and len(after):
+            a, b = before[-1], after[0]
+            ta, tb, tF = t_of[f[a]], t_of[f[b]], t_of[frame]
+            w = (tF - ta) / (tb - ta) if tb != ta else 0.5
+            xyz, used, change = (1 - w) * x[a] + w * x[b], [int(f[a]), int(f[b])], np.linalg.norm(x[b] - x[a])
+        else:
+            side = before[::-1] if len(before) else after          # nearest first
+            xyz, used = x[side[0]], [int(f[side[0]])]
+            change = np.linalg.norm(x[side[1]] - x[side[0]]) if len(side) > 1 else float("nan")
+        out[str(m)] = {"xyz": xyz, "frames": used, "change_mm": float(change)}
+    return out
+
+
 def markers_to_ct(tracks: pd.DataFrame, T, frame: int, roles: dict[str, str],
-                  coordinate_system: str | None = None) -> pd.DataFrame:
+                  coordinate_system: str | None = None, estimated: dict[str, dict] | None = None) -> pd.DataFrame:
     """Every row of ``tracks`` mapped to the CT frame, with its displacement from ``frame``.
 
-    ``dx_mm, dy_mm, dz_mm = T(x_f) - T(x_F)`` (NaN where the marker is missing in either frame);
-    ``role`` from ``roles`` (default ``marker``); ``coordinate_system`` is the CT file's
-    (``LPS``, ``RAS``, or ``unstated`` for a plain CSV that does not say).
+    ``dx_mm, dy_mm, dz_mm = T(x_f) - T(x_F)`` (NaN where the marker is missing in frame f, or
+    in frame F and not in ``estimated``, :func:`estimate_frame_positions`, whose ``xyz`` then
+    stands for ``x_F``); ``role`` from ``roles`` (default ``marker``); ``coordinate_system``
+    is the CT file's (``LPS``, ``RAS``, or ``unstated`` for a plain CSV that does not say).
     """
     xyz = tracks[["x_mm", "y_mm", "z_mm"]].to_numpy(float)
     ct = T.apply(xyz)
-    ref = tracks[tracks["frame"] == frame].set_index("marker")[["x_mm", "y_mm", "z_mm"]]
+    ref = tracks[(tracks["frame"] == frame) & _found(tracks)].set_index("marker")[["x_mm", "y_mm", "z_mm"]]
     ref_ct = {m: T.apply(v.to_numpy(float)) for m, v in ref.iterrows()}
+    for m, e in (estimated or {}).items():
+        ref_ct.setdefault(m, T.apply(np.asarray(e["xyz"], float)))
     d = np.array([ct[i] - ref_ct.get(m, np.full(3, np.nan)) for i, m in enumerate(tracks["marker"])]).reshape(-1, 3)
     out = pd.DataFrame({"frame": tracks["frame"].to_numpy(), "time_s": tracks["time_s"].to_numpy(float),
                         "marker": tracks["marker"].to_numpy(), "x_mm": ct[:, 0], "y_mm": ct[:, 1], "z_mm": ct[:, 2],
@@ -602,7 +657,8 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
     """
     from ..geometry import registration as reg
     from ..geometry.registration_effects import (MIN_REFERENCES, RegistrationData, RegistrationSpec,
-                                                 close_registration_loop, ct_positions, reference_checks)
+                                                 close_registration_loop, ct_positions, reference_checks,
+                                                 unresolved_motion)
     from ..io.slicer import read_markups
     from ..provenance import ResultSet, provenance
     from ..quality import warning
@@ -648,10 +704,20 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
     # noise taken from their scatter is several times too small and any wander is "motion"
     # (a static reference of the clean twin, 0.013 mm of wander within its stated sd, had
     # been dropped as moved, delta BIC 2917, in 6 of 13 tracked twins)
-    raw = all(c in tracks.columns for c in RAW_COLUMNS) and tracks[list(RAW_COLUMNS)].notna().any().all()
+    # decided per reference: a reference with no raw point at all (the others have them) had
+    # made the whole file's switch fail the other way round, the tracking noise NaN and with it
+    # the motion tests, large-fre and the head-motion check (displacements off by 1.23 mm, unsaid)
+    has_raw = all(c in tracks.columns for c in RAW_COLUMNS)
     frames, time, pos, *pos_raw = _tracks_array(tracks, found, ("x_mm", "y_mm", "z_mm"),
-                                                *([RAW_COLUMNS] if raw else []))
-    pos_stat = pos_raw[0] if raw else pos
+                                                *([RAW_COLUMNS] if has_raw else []))
+    raw_refs = ([r for j, r in enumerate(found) if np.all(np.isfinite(pos_raw[0][:, j]), axis=1).any()]
+                if has_raw else [])
+    raw = bool(raw_refs)
+    pos_stat = pos.copy()
+    for j, r in enumerate(found):
+        if r in raw_refs:
+            pos_stat[:, j] = pos_raw[0][:, j]
+    smoothed_refs = [r for r in found if r not in raw_refs] if raw else []
     fi = int(np.flatnonzero(frames == F)[0])
     if cfg.frame is None and len(found) < len(in_ct):
         warnings.append(warning("no-frame-with-all-references",
@@ -711,6 +777,22 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
     fre_limit = math.hypot(NOISE_FACTOR * noise_3d, ct_fre) if np.isfinite(noise_3d) else float("nan")
     swaps = [{"references": list(c), "note": _relabel_note(c)} for c in spec.swapped]
     warnings += _reference_effect_warnings(report, has_check=bool(c_names))
+    unresolved = unresolved_motion(data, spec) if cfg.loop else []
+    if unresolved:
+        mo = {n: data.motion(n) for n in unresolved}
+        turned = any(m["model"] == "rigid" for m in mo.values())
+        warnings.append(warning(
+            "reference-motion-unresolved",
+            f"register: the references {', '.join(unresolved)} do not stay rigid relative to each other over the "
+            f"trial (motion tests: " + ", ".join(f"{n} up to {m['max_displacement_mm']:.2g} mm" for n, m in mo.items())
+            + "), but each one's motion is explained as well by another's "
+            + ("(the head turned, and a reference moving out of the others' plane looks like a tilt that moves "
+               "any of them) " if turned else "(more than one moved) ")
+            + "so none was left out: a reference moved relative to the skull (on the brain, or knocked) and the "
+              "tracks cannot tell which; the head-motion compensation and every displacement carry part of its "
+              "motion: check the references by eye, or register with --reference naming only those on the bone",
+            log, references=unresolved, head_turned=turned,
+            max_displacement_mm={n: m["max_displacement_mm"] for n, m in mo.items()}))
     late = _late_frame_warning(tracks, F, targets, target_frames, found, NOISE_FACTOR * noise_3d, in_ct,
                                given=cfg.frame is not None)
     if late is not None:
@@ -757,9 +839,14 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
     skull = reg.skull_motion(pos[:, fit.used], fi, motions)
     skull["note"] = ("rigid motion of the used references as a whole relative to the registration frame; the "
                      "declared model has the head fixed relative to the C-arms (one transform for every frame)")
-    sigmas = [m["sigma_mm"] for m in (data.motion(n) for n in used) if m and np.isfinite(m["sigma_mm"])]
+    # judged against the used references' tracking noise with each frame's rigid motion taken
+    # out (a turn of the head does not inflate it), whatever their number: it had been the
+    # motion tests' noise, which needs four references, so with three a head that turned 1.9
+    # degrees and slid 1 mm was never compensated (displacements off by 1.28 mm, unsaid)
+    head_noise = reg.rigid_tracking_noise(pos_stat[:, fit.used])
+    skull["tracking_noise_mm"] = head_noise["sigma_mm"]
     head = None
-    if sigmas and skull["max_translation_mm"] > 5 * np.median(sigmas):
+    if np.isfinite(head_noise["sigma_mm"]) and skull["max_translation_mm"] > HEAD_MOTION_FACTOR * head_noise["sigma_mm"]:
         # the head moved relative to the C-arms: each frame is brought back onto the skull
         # (the used references' rigid motion from the registration frame taken out), so the
         # displacements are the tissue's relative to the skull, as the FE model's are
@@ -782,7 +869,28 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
     roles = {n: "marker" if n in ct_pos or n in markups.skipped else "xray-only" for n in t_names}
     for r in found:
         roles[r] = "moved-reference" if r in spec.moved else "reference"
-    table = markers_to_ct(tracks, T, F, roles, markups.coordinate_system)
+    # a marker hidden in the registration frame only had NaN displacements in every frame
+    # (50 of 50 rows of the probe's M3), unsaid: its frame-F position is estimated from its
+    # nearest frames, and a warning names it
+    at_F = estimate_frame_positions(tracks, F)
+    table = markers_to_ct(tracks, T, F, roles, markups.coordinate_system, estimated=at_F)
+    if at_F:
+        def how(m, e):
+            fr = e["frames"]
+            src = (f"interpolated between frames {fr[0]} and {fr[1]}, between which it moved "
+                   f"{e['change_mm']:.3g} mm" if len(fr) == 2 else
+                   f"taken from frame {fr[0]}, the nearest it is found in" + (
+                       f" (it moves {e['change_mm']:.3g} mm over the next frame found)"
+                       if np.isfinite(e["change_mm"]) else ""))
+            return f"{m} ({src})"
+        warnings.append(warning(
+            "marker-missing-in-registration-frame",
+            f"register: {len(at_F)} marker(s) not found in the registration frame {F}: their displacements in "
+            f"markers_ct.csv are from an estimated frame-{F} position: "
+            + "; ".join(how(m, e) for m, e in at_F.items())
+            + "; an error of that estimate is in every displacement of the marker", log,
+            frame=int(F), markers={m: {"frames": e["frames"], "change_mm": e["change_mm"],
+                                       "xray_mm": [float(c) for c in e["xyz"]]} for m, e in at_F.items()}))
     no_ct = {n: markups.skipped[n] for n in t_names if n in markups.skipped and n not in cfg.references}
 
     check = {n: float(np.linalg.norm(T.apply(targets[n]) - ct_pos[n])) for n in c_names}
@@ -825,7 +933,9 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
                            "note": "per-axis scatter of the used references about their mean positions over "
                                    "the trial, their common translation taken out" + (
                                        "; of the raw 3-D points (x_mm_raw, ..), as the motion test" if raw else
-                                       "")},
+                                       "") + (f"; {', '.join(smoothed_refs)}: no raw point, smoothed points used"
+                                              if smoothed_refs else ""),
+                           "smoothed_references": smoothed_refs},
         "model": spec.describe(),
         "fre_mm": {n: float(e) for n, e in zip(found, fre)},
         # the references' CT positions (labels given back where the loop found them mixed up):

@@ -59,7 +59,7 @@ from ..distributions import chi2_sf, f_sf
 
 __all__ = ["Similarity", "fit_similarity", "n_params", "residual_vectors", "fre", "estimate_fle",
            "tre_fitzpatrick", "tre_linearized", "tre_perturbation", "leave_one_out",
-           "reference_motion", "tracking_noise", "reference_motions", "skull_motion", "rotation_angle_deg",
+           "reference_motion", "tracking_noise", "rigid_tracking_noise", "reference_motions", "skull_motion", "rotation_angle_deg",
            "point_configuration"]
 
 #: Relative size of the second singular value of the centred points below which they are
@@ -400,6 +400,43 @@ def _common_scatter(O: np.ndarray) -> tuple[np.ndarray, float, int]:
     return common, float(np.sum(dev ** 2)), 3 * (O.shape[1] - 1) * (O.shape[0] - 1)
 
 
+def _rigid_scatter(O: np.ndarray, n_iter: int = 3) -> tuple[list, np.ndarray, float, int]:
+    """Points (F, M, 3), M >= 3 not on a line, found in every frame: the rigid transform of each
+    frame onto their mean shape (generalised Procrustes, ``n_iter`` rounds), the mean shape
+    (M, 3), and the residual sum of squares and degrees of freedom, :math:`(3M-6)(F-1)`, of
+    their scatter about it once each frame's rigid motion is taken out."""
+    mean = O.mean(axis=0)
+    for _ in range(n_iter):
+        Ts = [fit_similarity(o, mean) for o in O]
+        aligned = np.stack([T.apply(o) for T, o in zip(Ts, O)])
+        mean = aligned.mean(axis=0)
+    return Ts, mean, float(np.sum((aligned - mean) ** 2)), (3 * O.shape[1] - 6) * (O.shape[0] - 1)
+
+
+def rigid_tracking_noise(tracks) -> dict:
+    r"""Per-axis tracking noise :math:`\sigma` (mm) of references fixed to one rigid body that
+    may turn as well as slide (the head relative to the C-arms).
+
+    As :func:`tracking_noise`, but each frame's rigid motion (not only its translation) is
+    taken out (:math:`\hat\sigma^2 = \mathrm{RSS}/((3M-6)(F-1))`, generalised Procrustes on
+    the frames where all M >= 3 are found): a turn of the head does not inflate it.  Returns
+    ``{"sigma_mm", "dof", "n_frames", "n_references"}`` (``sigma_mm`` NaN with no degrees of
+    freedom or references on a line)."""
+    tracks = np.asarray(tracks, dtype=float)
+    ok = np.all(np.isfinite(tracks), axis=(1, 2))
+    m = tracks.shape[1]
+    out = {"sigma_mm": float("nan"), "dof": 0, "n_frames": int(ok.sum()), "n_references": int(m)}
+    if m < 3 or ok.sum() < 2:
+        return out
+    try:
+        _, _, rss, dof = _rigid_scatter(tracks[ok])
+    except ValueError:          # on a line
+        return out
+    if dof > 0:
+        out.update(sigma_mm=float(np.sqrt(rss / dof)), dof=int(dof))
+    return out
+
+
 def tracking_noise(tracks) -> dict:
     r"""Per-axis tracking noise :math:`\sigma` (mm) of references that stay fixed to the skull.
 
@@ -423,7 +460,13 @@ def tracking_noise(tracks) -> dict:
     return out
 
 
-def reference_motion(track, others, *, time=None, max_knots: int = 12) -> dict:
+#: p of the F test (the others' scatter with their translation taken out against that with
+#: their rigid motion taken out) below which the other references turn as well as slide, and
+#: :func:`reference_motion` takes their rigid motion out of the candidate.
+ROTATION_P = 0.01
+
+
+def reference_motion(track, others, *, time=None, max_knots: int = 12, model: str = "auto") -> dict:
     r"""Did a reference move over the trial, while the others stayed still?
 
     Parameters
@@ -451,10 +494,28 @@ def reference_motion(track, others, *, time=None, max_knots: int = 12) -> dict:
     test blind to which of four references moved: with three others a rigid tilt absorbs one
     of them moving out of their plane.)
 
+    But when the others turn as well as slide (``model="auto"``: the F test of their scatter
+    with the translation taken out against that with their rigid motion taken out, at p <
+    :data:`ROTATION_P`; ``model="rigid"``: always), a turn of the head makes a reference
+    away from the axis look as if it moved (a static corner reference had been left out for
+    a moving one, displacements off by 0.3-0.5 mm).  Then each frame's rigid motion of the
+    others (generalised Procrustes onto their mean shape) is taken out of the candidate, and
+    :math:`\sigma^2` is their remaining scatter (:math:`(3M-6)(F-1)` degrees of freedom)
+    times :math:`1 + \mathrm{TRE}^2/(3\sigma^2)` at the candidate (the alignment's error
+    there, :func:`tre_fitzpatrick`).  With the others turning, a reference moving out of
+    their plane cannot be told from a tilt that moves another (``"model": "rigid"`` results
+    of several references flag together: the caller's to judge).
+
     Returns ``{"n_frames", "sigma_mm", "max_displacement_mm", "rms_displacement_mm",
-    "chi2", "dof", "p", "delta_bic", "n_knots"}`` (``n_frames`` < 3: no test, delta_bic 0);
-    the displacements are those of the smooth fit since the first usable frame.
+    "chi2", "dof", "p", "delta_bic", "n_knots", "model", "others_rotation", "others_sigma_mm",
+    "others_dof"}`` (``n_frames`` < 3: no test, delta_bic 0); the displacements are those of
+    the smooth fit since the first usable frame; ``model`` ``"translation"`` or ``"rigid"``
+    (what was taken out), ``others_rotation`` the F test (``{"f", "dof", "p"}``, None with
+    fewer than three others), ``others_sigma_mm`` and ``others_dof`` the others' scatter
+    with it taken out.
     """
+    if model not in ("auto", "translation", "rigid"):
+        raise ValueError(f"model must be auto, translation or rigid, not {model!r}")
     track = np.asarray(track, dtype=float)
     others = np.asarray(others, dtype=float)
     nf = len(track)
@@ -464,7 +525,8 @@ def reference_motion(track, others, *, time=None, max_knots: int = 12) -> dict:
     m = others.shape[1]
     empty = {"n_frames": int(len(idx)), "sigma_mm": float("nan"), "max_displacement_mm": float("nan"),
              "rms_displacement_mm": float("nan"), "chi2": 0.0, "dof": 0, "p": 1.0, "delta_bic": 0.0,
-             "n_knots": 0}
+             "n_knots": 0, "model": "translation", "others_rotation": None, "others_sigma_mm": float("nan"),
+             "others_dof": 0}
     tt = t[idx]
     if m < 2 or len(idx) < 3 or np.ptp(tt) <= 0:
         return empty
@@ -472,8 +534,27 @@ def reference_motion(track, others, *, time=None, max_knots: int = 12) -> dict:
     common, rss_o, dof_o = _common_scatter(O)
     if dof_o <= 0 or rss_o <= 0:
         return empty
-    sigma2 = rss_o / dof_o * (1.0 + 1.0 / m)               # a_f carries the noise of the others' mean
-    a = track[idx] - common
+    rotation, rigid = None, None
+    if m >= 3 and model != "translation":
+        try:
+            rigid = _rigid_scatter(O)
+        except ValueError:          # the others on a line: their rotation about it is undetermined
+            rigid = None
+        if rigid is not None and rigid[3] > 0 and rigid[2] > 0:
+            d1 = dof_o - rigid[3]
+            f = ((rss_o - rigid[2]) / d1) / (rigid[2] / rigid[3])
+            rotation = {"f": float(f), "dof": [int(d1), int(rigid[3])], "p": f_sf(f, d1, rigid[3])}
+    if rigid is not None and rotation is not None and (model == "rigid" or rotation["p"] < ROTATION_P):
+        Ts, shape, rss_r, dof_r = rigid
+        a = np.stack([T.apply(x) for T, x in zip(Ts, track[idx])])
+        # the alignment's per-axis error variance at the candidate, in units of sigma^2
+        lever = float(tre_fitzpatrick(shape, a.mean(axis=0)[None], math.sqrt(3.0))[0] ** 2 / 3.0)
+        s2_o, d_o, used_model = rss_r / dof_r, dof_r, "rigid"
+        sigma2 = s2_o * (1.0 + lever)
+    else:
+        s2_o, d_o, used_model = rss_o / dof_o, dof_o, "translation"
+        sigma2 = s2_o * (1.0 + 1.0 / m)                     # a_f carries the noise of the others' mean
+        a = track[idx] - common
     rss_const = float(np.sum((a - a.mean(axis=0)) ** 2))
     n_knots = int(np.clip(len(idx) // 4, 2, max_knots))
     B = _hat_basis(tt, n_knots)
@@ -486,7 +567,8 @@ def reference_motion(track, others, *, time=None, max_knots: int = 12) -> dict:
     return {"n_frames": int(len(idx)), "sigma_mm": float(np.sqrt(sigma2)),
             "max_displacement_mm": float(disp.max()), "rms_displacement_mm": float(np.sqrt(np.mean(disp ** 2))),
             "chi2": float(chi2), "dof": int(k), "p": chi2_sf(chi2, k),
-            "delta_bic": float(chi2 - k * np.log(3 * len(idx))), "n_knots": n_knots}
+            "delta_bic": float(chi2 - k * np.log(3 * len(idx))), "n_knots": n_knots, "model": used_model,
+            "others_rotation": rotation, "others_sigma_mm": float(np.sqrt(s2_o)), "others_dof": int(d_o)}
 
 
 def reference_motions(tracks, frame_index: int) -> list[tuple["Similarity", np.ndarray] | None]:

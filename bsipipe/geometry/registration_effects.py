@@ -18,8 +18,9 @@ positions in the registration frame F; its residual is the 3N coordinates of
     its position relative to the other references changes.  Parameters: a free displacement
     of that reference (3), i.e. it no longer constrains the transform.  Outside evidence:
     (a) its smooth motion over the trial while the other references stay still
-    (:func:`~bsipipe.geometry.registration.reference_motion`; not counted when several
-    references move, which is the head moving), and (b) the held-out test
+    (:func:`~bsipipe.geometry.registration.reference_motion`, against the others' rigid
+    motion where they turn; not counted when another reference's motion explains the tracks
+    as well, :func:`motion_rivals`), and (b) the held-out test
     at frame F (:func:`~bsipipe.geometry.registration.leave_one_out`: the reference predicted
     by a fit that never saw it), expressed as :math:`\chi^2_3` of equal tail probability
     minus :math:`3 \ln 3N`.  Evidence of no motion is not evidence that the CT position is
@@ -78,7 +79,7 @@ from .registration import Similarity, fit_similarity, leave_one_out, n_params, r
 
 __all__ = ["RegistrationSpec", "RegistrationData", "RegistrationFit", "fit_registration",
            "registration_covariates", "registration_effects", "close_registration_loop",
-           "reference_checks", "ct_positions"]
+           "reference_checks", "ct_positions", "motion_rivals", "unresolved_motion"]
 
 #: Fewest references that determine the transform.
 MIN_REFERENCES = 3
@@ -128,17 +129,33 @@ class RegistrationData:
     def index(self, name: str) -> int:
         return self.names.index(name)
 
-    def motion(self, name: str) -> dict:
-        """:func:`reference_motion` of reference ``name`` against the others (cached)."""
-        if name not in self._motion:
+    def _motion_test(self, name: str, model: str) -> dict | None:
+        key = (name, model)
+        if key not in self._motion:
             if self.tracks_mm is None or len(self.names) < MIN_REFERENCES + 1:
-                self._motion[name] = None
+                self._motion[key] = None
             else:
                 k = self.index(name)
                 others = [j for j in range(len(self.names)) if j != k]
-                self._motion[name] = reference_motion(self.tracks_mm[:, k], self.tracks_mm[:, others],
-                                                      time=self.time_s)
-        return self._motion[name]
+                self._motion[key] = reference_motion(self.tracks_mm[:, k], self.tracks_mm[:, others],
+                                                     time=self.time_s, model=model)
+        return self._motion[key]
+
+    def motion(self, name: str) -> dict | None:
+        """:func:`reference_motion` of reference ``name`` against the others (cached).
+
+        Against the others' rigid motion where they turn (``model="auto"``), except where
+        another reference's motion, judged against its others' translation only, explains
+        their turn (it moves out of their plane, and a rigid fit of a set holding it tilts):
+        then against the others' translation, as though the head did not turn."""
+        m = self._motion_test(name, "auto")
+        if m is None or m["model"] != "rigid":
+            return m
+        by = [n for n in self.names if n != name and _flagged(self._motion_test(n, "auto"))
+              and self._motion_test(n, "auto")["model"] == "translation"]
+        if not by:
+            return m
+        return {**self._motion_test(name, "translation"), "others_turn_explained_by": by}
 
 
 @dataclass
@@ -253,15 +270,79 @@ def _outside_evidence(data: RegistrationData, spec: RegistrationSpec, name: str)
     note = ("largest of the motion test over the trial and the held-out test at the registration frame; "
             "never negative (no motion does not show the CT position is right)")
     if scores["motion"] is not None and scores["motion"] > MOTION_DELTA_BIC:
-        also = [n for n in data.names if n != name and n not in spec.moved
-                and (data.motion(n) or {}).get("delta_bic", 0.0) > MOTION_DELTA_BIC]
+        also = motion_rivals(data, spec, name)
         if also:
-            # several references move together: the head moved relative to the C-arms,
-            # which says nothing about this one reference
+            # another reference explains the motion as well: several moved, or the head turned
+            # and which one moved out of the others' plane cannot be told; this says nothing
+            # about this one reference
             scores["motion"] = None
-            note += f"; motion not counted: {', '.join(also)} move as well (the head moved?)"
+            note += (f"; motion not counted: {', '.join(also)} move as well relative to the others "
+                     f"({'the head turned: ' if motion['model'] == 'rigid' else ''}which moved cannot be told)")
     d = max([0.0] + [v for v in scores.values() if v is not None])
     return {"delta_bic": d, "reference": name, **parts, "note": note}
+
+
+def _flagged(motion: dict | None) -> bool:
+    return motion is not None and motion.get("delta_bic", 0.0) > MOTION_DELTA_BIC
+
+
+def motion_rivals(data: RegistrationData, spec: RegistrationSpec, name: str) -> list[str]:
+    """The references in use other than ``name`` whose motion test (:meth:`RegistrationData.motion`)
+    explains the trial's tracks as well as ``name``'s.
+
+    A reference judged against the others' translation only (``model`` ``"translation"``: the
+    others do not turn) is the simpler explanation: a flag judged against the others' rigid
+    motion does not rival it (one reference moving out of the others' plane tilts a rigid fit
+    of a set that holds it, and every other reference then looks moved).  Two flags judged
+    alike rival each other, except that a rigid-motion flag whose others scatter
+    significantly more (F test, p < 1 %) than ``name``'s does not: its others are not rigid,
+    they hold the reference that moved.  With four nearly coplanar references and the head
+    turning, all four flag alike: which one moved cannot be told from the tracks."""
+    me = data.motion(name)
+    if not _flagged(me):
+        return []
+    out = []
+    for n in data.names:
+        if n == name or n in spec.moved:
+            continue
+        other = data.motion(n)
+        if not _flagged(other):
+            continue
+        if not _dominates(me, other):
+            out.append(n)
+    return out
+
+
+def _dominates(a: dict, b: dict) -> bool:
+    """Motion test ``a`` explains flag ``b`` away: ``a`` judged against the others' translation
+    and ``b`` against their rigid motion, or both against rigid motion and ``b``'s others
+    scattering significantly more (F test, p < 1 %)."""
+    if a["model"] == "translation":
+        return b["model"] == "rigid"
+    if b["model"] != "rigid" or not (a["others_dof"] and b["others_dof"]):
+        return False
+    return f_sf((b["others_sigma_mm"] / a["others_sigma_mm"]) ** 2, b["others_dof"], a["others_dof"]) < HELDOUT_P
+
+
+def motion_explainers(data: RegistrationData, name: str) -> list[str]:
+    """The references whose flagged motion explains ``name``'s flag away (:func:`motion_rivals`)."""
+    me = data.motion(name)
+    if not _flagged(me):
+        return []
+    return [n for n in data.names if n != name and _flagged(data.motion(n)) and _dominates(data.motion(n), me)]
+
+
+def unresolved_motion(data: RegistrationData, spec: RegistrationSpec) -> list[str]:
+    """References in use whose motion over the trial is flagged together with a rival's
+    (:func:`motion_rivals`) while the loop left out neither: one of them (or more) moved
+    relative to the skull, and the tracks cannot tell which."""
+    used = [n for n in data.names if n not in spec.moved]
+    out = []
+    for n in used:
+        rivals = motion_rivals(data, replace(spec, moved=()), n)
+        if rivals and not any(r in spec.moved for r in rivals):
+            out.append(n)
+    return out
 
 
 def _candidate(data: RegistrationData, spec: RegistrationSpec) -> str | None:
@@ -531,7 +612,8 @@ def reference_checks(data: RegistrationData, spec: RegistrationSpec) -> dict:
     """Per reference: the held-out test at frame F and the motion test over the trial (for the report).
 
     ``flagged`` when the held-out test rejects at Bonferroni-corrected 1 % or the motion test
-    has delta BIC > 10 (very strong).  The held-out test uses every reference, with the CT
+    has delta BIC > 10 (very strong) and no other reference's motion explains it
+    (``motion_explained_by``, :func:`motion_explainers`).  The held-out test uses every reference, with the CT
     labels exchanged as ``spec`` has them.
     """
     out = {}
@@ -539,8 +621,8 @@ def reference_checks(data: RegistrationData, spec: RegistrationSpec) -> dict:
     for n in data.names:
         held = _heldout(data, replace(spec, moved=()), n)
         motion = data.motion(n)
-        flag = bool((held is not None and held["p_bonferroni"] < HELDOUT_P)
-                    or (motion is not None and motion["delta_bic"] > MOTION_DELTA_BIC))
-        out[n] = {"heldout": held, "motion": motion, "flagged": flag, "moved": n in spec.moved,
-                  "ct_label": swapped.get(n, n)}
+        explained = motion_explainers(data, n)
+        flag = bool((held is not None and held["p_bonferroni"] < HELDOUT_P) or (_flagged(motion) and not explained))
+        out[n] = {"heldout": held, "motion": motion, "motion_explained_by": explained, "flagged": flag,
+                  "moved": n in spec.moved, "ct_label": swapped.get(n, n)}
     return out
