@@ -422,16 +422,26 @@ def rigid_tracking_noise(tracks) -> dict:
     the frames where all M >= 3 are found): a turn of the head does not inflate it.  Returns
     ``{"sigma_mm", "dof", "n_frames", "n_references"}`` (``sigma_mm`` NaN with no degrees of
     freedom or references on a line)."""
-    tracks = np.asarray(tracks, dtype=float)
-    ok = np.all(np.isfinite(tracks), axis=(1, 2))
-    m = tracks.shape[1]
-    out = {"sigma_mm": float("nan"), "dof": 0, "n_frames": int(ok.sum()), "n_references": int(m)}
-    if m < 3 or ok.sum() < 2:
+    tracks, ok, out = _noise_frames(tracks)
+    if out["n_references"] < 3 or ok.sum() < 2:
         return out
     try:
         _, _, rss, dof = _rigid_scatter(tracks[ok])
     except ValueError:          # on a line
         return out
+    return _with_sigma(out, rss, dof)
+
+
+def _noise_frames(tracks):
+    """``tracks`` as a float array (F, M, 3), the frames where all are found, and the result
+    of the noise estimates before any degree of freedom is counted."""
+    tracks = np.asarray(tracks, dtype=float)
+    ok = np.all(np.isfinite(tracks), axis=(1, 2))
+    return tracks, ok, {"sigma_mm": float("nan"), "dof": 0, "n_frames": int(ok.sum()),
+                        "n_references": int(tracks.shape[1])}
+
+
+def _with_sigma(out: dict, rss: float, dof: int) -> dict:
     if dof > 0:
         out.update(sigma_mm=float(np.sqrt(rss / dof)), dof=int(dof))
     return out
@@ -448,16 +458,11 @@ def tracking_noise(tracks) -> dict:
     Returns ``{"sigma_mm", "dof", "n_frames", "n_references"}`` (``sigma_mm`` NaN with no
     degrees of freedom: one frame, or one reference).
     """
-    tracks = np.asarray(tracks, dtype=float)
-    ok = np.all(np.isfinite(tracks), axis=(1, 2))
-    m = tracks.shape[1]
-    out = {"sigma_mm": float("nan"), "dof": 0, "n_frames": int(ok.sum()), "n_references": int(m)}
-    if m < 2 or ok.sum() < 2:
+    tracks, ok, out = _noise_frames(tracks)
+    if out["n_references"] < 2 or ok.sum() < 2:
         return out
     _, rss, dof = _common_scatter(tracks[ok])
-    if dof > 0:
-        out.update(sigma_mm=float(np.sqrt(rss / dof)), dof=int(dof))
-    return out
+    return _with_sigma(out, rss, dof)
 
 
 #: p of the F test (the others' scatter with their translation taken out against that with
