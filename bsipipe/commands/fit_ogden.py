@@ -20,7 +20,7 @@ from pydantic import Field, PositiveFloat
 
 from ..config import FitConfig, load_config, validate
 from ..errors import InputError, ProcessingError
-from ..io.machine_log import clipped_top
+from ..io.machine_log import RESOLUTION_REFUSE_SHARE, clipped_top, load_resolution
 from ..quality import listed
 
 log = logging.getLogger(__name__)
@@ -236,23 +236,33 @@ def _residual_correlated(final, loop_dict: dict, paths) -> list[dict]:
 
 
 def _other_optima(final, data, max_strain) -> list[dict]:
-    """``another-optimum``: a law with several Ogden terms that another set of parameters,
-    outside the reported intervals, fits as well within the noise
-    (:func:`~bsipipe.mechanics.fit.other_optima`)."""
+    """``another-optimum``: another set of the law's parameters, outside the reported
+    intervals, that fits as well within the noise (:func:`~bsipipe.mechanics.fit.other_optima`:
+    a law with several Ogden terms, or a one-term law's exponent of the other sign).  The
+    intervals describe one basin; the warning gives each parameter's span over both
+    (``params_span``: the reported interval and the other optimum's own)."""
     from ..mechanics.fit import other_optima
     from ..quality import warning
     alts = other_optima(data, final, max_strain=max_strain)
     if not alts:
         return []
     a = alts[0]
+    span = {k: [min(final.ci95[k][0], v, *a["ci95"].get(k, [v])), max(final.ci95[k][1], v, *a["ci95"].get(k, [v]))]
+            for k, v in a["params"].items() if k in final.ci95}
+    exps = [k for k in a["params"] if k.startswith("alpha")]
+    what = (f"the sign of {exps[0]} is not determined by these logs" if len(exps) == 1
+            else f"the {final.spec.law} law's parameters are not determined by these logs")
     return [warning(
         "another-optimum",
-        f"fit-ogden: the {final.spec.law} law's parameters are not determined by these logs: "
+        f"fit-ogden: {what}: "
         + ", ".join(f"{k} {v:.4g}" for k, v in a["params"].items())
         + f" fits as well within the noise (its weighted sum of squares {a['delta_sse_over_s2']:.2g} noise variances "
           "above the best, inside the parameters' joint 95 % region), outside the reported intervals, which "
-          "describe one basin only; another test (speed, mode) or a law with fewer terms would tell them apart",
-        log, alternatives=alts)]
+          "describe one basin only; over both, "
+        + ", ".join(f"{k} spans [{lo:.4g}, {hi:.4g}]" for k, (lo, hi) in span.items())
+        + ("; a longer ramp, or another speed or mode, would tell them apart" if len(exps) == 1
+           else "; another test (speed, mode) or a law with fewer terms would tell them apart"),
+        log, alternatives=alts, params_span=span)]
 
 
 MAX_SPIKES = 5
@@ -262,7 +272,8 @@ def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig, per_log: dict[str, lis
     """The logs and their inputs records; ``per_log``: each :data:`PER_LOG` key's value per
     log (:func:`_per_log`)."""
     from ..io.machine_log import read_machine_log
-    from ..mechanics.contact import ContactNotInRecord, NoLoadingRamp, detect_contact, loading_ramps
+    from ..mechanics.contact import (ContactNotInRecord, NoLoadingRamp, detect_contact, force_noise, lift_off,
+                                     loading_ramps)
     from ..mechanics.fit import MIN_UNLOADED_SAMPLES, LogData
 
     logs, inputs = [], []
@@ -313,6 +324,17 @@ def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig, per_log: dict[str, lis
             time_s, disp, force = time_s[:first], disp[:first], force[:first]
             record["fitted_part"] += (f"; up to line {ml.line_of(rows[first - 1])}, the last sample before the load "
                                       f"clipped at {clip['level_n']:.6g} N")
+        coarse = load_resolution(disp, force)
+        if coarse is not None:
+            said = (f"the load is written in steps of {coarse['quantum_n']:.4g} N (the smallest step between its "
+                    f"values; {coarse['levels']:.0f} steps over its range; its noise, {1e3 * coarse['noise_n']:.2g} mN, "
+                    f"under half a step, does not dither them): its first step past the start of the loading spans "
+                    f"{coarse['first_step_mm']:.3g} mm of the {coarse['travel_mm']:.3g} mm of travel after it")
+            if coarse["share"] > RESOLUTION_REFUSE_SHARE:
+                raise InputError(f"{said}, more than {RESOLUTION_REFUSE_SHARE:.0%}: the record cannot locate the "
+                                 "contact or the low-strain stiffness (the staircase is no noise a fit can average); "
+                                 "export the load with more decimals (in N rather than kN)", path=p)
+            record["load_resolution"] = {**coarse, "message": said}
         name = Path(p).stem
         tared = False
         if given is None:
@@ -360,6 +382,18 @@ def _read_logs(paths: Sequence[str], cfg: FitOgdenConfig, per_log: dict[str, lis
                 baseline = {"level_n": 0.0,
                             "source": "assumed 0 N (the load cell zeroed unloaded): the record has "
                                       f"{int(before.sum())} samples before the given contact, too few to measure it"}
+        off = lift_off(disp, force, baseline["level_n"], noise if noise else force_noise(force))
+        if off is not None:
+            # the platen left the specimen while retracting: the force at the cell's zero from
+            # there on measures no tissue (the model would pull on it); the fit stops before it
+            record["lift_off"] = {"line": ml.line_of(rows[off]), "time_s": float(time_s[off]),
+                                  "extension_mm": float(ml.extension_mm[rows[off]]),
+                                  "displacement_mm": float(disp[off]), "n_left_out": int(len(disp) - off),
+                                  "floor_n": float(baseline["level_n"])}
+            time_s, disp, force = time_s[:off], disp[:off], force[:off]
+            record["fitted_part"] += (f"; up to line {ml.line_of(rows[off - 1])}, the last sample before the platen "
+                                      f"left the specimen on unloading (at {record['lift_off']['time_s']:.4g} s, "
+                                      f"extension {record['lift_off']['extension_mm']:.4g} mm)")
         _check_travel(p, disp, contact_mm, geo, given is not None, geo_source, cfg.max_strain)
         speed = _loading_speed(time_s, disp, start)
         logs.append(LogData(name, time_s, disp, force, geo["diameter_mm"], geo["height_mm"],
@@ -659,23 +693,53 @@ def _several_ramps(input_info: list[dict]) -> list[dict]:
         for info in input_info if int(info.get("loading_ramps", 1) or 1) > 1]
 
 
+def _log_warnings(input_info: list[dict], key: str, code: str, text, fields) -> list[dict]:
+    """A ``code`` warning for each log whose ``input_info`` entry holds ``key``: ``text(name, c)``
+    its message after the log's name, ``fields(c)`` its keys beside ``log_name``."""
+    from ..quality import warning
+    return [warning(code, f"fit-ogden: {Path(info['path']).name}: {text(info[key])}", log, log_name=info["path"],
+                    **fields(info[key]))
+            for info in input_info if info.get(key)]
+
+
 def _load_clipped(input_info: list[dict]) -> list[dict]:
     """A ``load-clipped`` warning for each log whose force stops at a ceiling
     (:func:`clipped_top`): the fit ends before it."""
-    from ..quality import warning
-    out = []
-    for info in input_info:
-        c = info.get("load_clipped")
-        if c:
-            out.append(warning(
-                "load-clipped",
-                f"fit-ogden: {Path(info['path']).name}: the load reads {c['level_n']:.6g} N, exactly, on "
-                f"{c['n_samples']} samples from line {c['first_line']} while the platen travels {c['travel_mm']:.3g} "
-                f"mm on, over which the samples before rise {c['expected_rise_n']:.3g} N: the load cell (or the "
-                f"export) clipped at the end of its range; the fit stops before it, at "
-                f"{c['displacement_mm']:.4g} mm; use a larger cell or a shallower test to fit the rest", log,
-                log_name=info["path"], level_n=c["level_n"], n_samples=c["n_samples"], first_line=c["first_line"]))
-    return out
+    return _log_warnings(
+        input_info, "load_clipped", "load-clipped",
+        lambda c: (f"the load reads {c['level_n']:.6g} N, exactly, on {c['n_samples']} samples from line "
+                   f"{c['first_line']} while the platen travels {c['travel_mm']:.3g} mm on, over which the samples "
+                   f"before rise {c['expected_rise_n']:.3g} N: the load cell (or the export) clipped at the end of "
+                   f"its range; the fit stops before it, at {c['displacement_mm']:.4g} mm; use a larger cell or a "
+                   "shallower test to fit the rest"),
+        lambda c: {"level_n": c["level_n"], "n_samples": c["n_samples"], "first_line": c["first_line"]})
+
+
+def _load_resolution(input_info: list[dict]) -> list[dict]:
+    """A ``load-resolution`` warning for each log whose load is written so coarsely that its
+    first step spans over a tenth of the loading travel
+    (:func:`~bsipipe.io.machine_log.load_resolution`; over a fifth is exit 2)."""
+    return _log_warnings(
+        input_info, "load_resolution", "load-resolution",
+        lambda c: (f"{c['message']}: the contact and the low-strain stiffness are located no better than that "
+                   "step, and the staircase is no random error (the intervals do not allow for it); export the "
+                   "load with more decimals"),
+        lambda c: {"quantum_n": c["quantum_n"], "share": c["share"]})
+
+
+def _lift_off(input_info: list[dict]) -> list[dict]:
+    """A ``platen-lift-off`` warning for each log whose force sits at the load cell's zero on
+    unloading while the crosshead still retracts (:func:`~bsipipe.mechanics.contact.lift_off`):
+    the platen left the specimen there, and the fit stops before it."""
+    return _log_warnings(
+        input_info, "lift_off", "platen-lift-off",
+        lambda c: (f"on unloading the load sits at its unloaded level ({c['floor_n']:.3g} N) from line {c['line']} "
+                   f"(time {c['time_s']:.4g} s, extension {c['extension_mm']:.4g} mm) while the crosshead still "
+                   "retracts, where loading had pressed the specimen well above the noise: the platen left the "
+                   "specimen there (it recovers more slowly than the platen retracts); its "
+                   f"{c['n_left_out']} samples from there on measure no tissue and are left out of the fit"),
+        lambda c: {"line": c["line"], "time_s": c["time_s"], "extension_mm": c["extension_mm"],
+                   "n_left_out": c["n_left_out"]})
 
 
 def _spikes_left_out(input_info: list[dict]) -> list[dict]:
@@ -1029,8 +1093,9 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
     }
     result["warnings"] = _fit_quality(final)
     if kind == "logs":
-        result["warnings"] += (_spikes_left_out(input_info) + _load_clipped(input_info) + _several_ramps(input_info)
-                               + _contacts_moved(input_info) + _geometry_disagrees(input_info))
+        result["warnings"] += (_spikes_left_out(input_info) + _load_clipped(input_info) + _lift_off(input_info)
+                               + _load_resolution(input_info)
+                               + _several_ramps(input_info) + _contacts_moved(input_info) + _geometry_disagrees(input_info))
         if boundary_said is not None:
             result["boundary_check"] = boundary_said["evidence"]
             if boundary_said.get("warning"):

@@ -52,8 +52,8 @@ from scipy.optimize import brentq, minimize_scalar
 
 from ..errors import ProcessingError
 
-__all__ = ["Contact", "ContactNotInRecord", "detect_contact", "loading_ramps", "WINDOW_NOISE_MULTIPLE",
-           "CHECK_NOISE_MULTIPLE"]
+__all__ = ["Contact", "ContactNotInRecord", "detect_contact", "loading_ramps", "lift_off", "force_noise",
+           "WINDOW_NOISE_MULTIPLE", "CHECK_NOISE_MULTIPLE"]
 
 WINDOW_NOISE_MULTIPLE = 100.0
 #: The half window whose contact checks the whole window's for a systematic error.
@@ -385,3 +385,71 @@ def _fit_hinge(d: np.ndarray, f: np.ndarray) -> tuple[float, int, np.ndarray, fl
     else:
         sd = float("nan")
     return best[1], best[2], best[3], sd
+
+
+#: Lift-off (:func:`lift_off`): the floor's band, in noise levels either side of the unloaded force.
+LIFT_OFF_BAND = 3.0
+#: ... the share of the unloading samples from there on that must sit in the band.
+LIFT_OFF_SHARE = 0.9
+#: ... the loading branch's force at that displacement, in noise levels above the floor, that
+#: makes it a lift-off (an elastic specimen's unloading reaches the band 3-5 noise levels above
+#: the contact; a viscoelastic one that lifts off does so tens of noise levels above it).
+LIFT_OFF_LOADED = 10.0
+#: ... and the fewest samples at the floor.
+LIFT_OFF_MIN_SAMPLES = 5
+
+
+def force_noise(force_n) -> float:
+    """The load noise of a smooth record from its second differences (1.4826 MAD / sqrt 6)."""
+    f = np.asarray(force_n, float)
+    if f.size < 4:
+        return 0.0
+    dd = np.diff(f, 2)
+    return _MAD_TO_SD * float(np.median(np.abs(dd - np.median(dd)))) / np.sqrt(6.0)
+
+
+def lift_off(displacement_mm, force_n, floor_n: float, noise_n: float) -> int | None:
+    """Where the platen left the specimen on the unloading branch, or None.
+
+    On unloading, a viscoelastic specimen's force falls faster than on loading; where the
+    quasi-linear model would pull (a negative force) the platen leaves the tissue instead and
+    the load cell reads its unloaded level while the crosshead still retracts.  Such samples
+    measure no material: a model that keeps the platen on the specimen cannot fit them (the
+    probe's QLV g 0.3, tau 1 s log had been fitted with a false drift and contact offset, alpha
+    -4.95 [-5.08, -4.81] for -4.7).
+
+    The test, on the samples after the largest displacement up to the smallest after it (the
+    crosshead retracting): the first sample within :data:`LIFT_OFF_BAND` noise levels of
+    ``floor_n`` from which on at least :data:`LIFT_OFF_SHARE` of the retraction's samples (and
+    :data:`LIFT_OFF_MIN_SAMPLES`) stay in that band, at a displacement where the loading
+    branch's force was more than :data:`LIFT_OFF_LOADED` noise levels above the floor (an
+    elastic specimen reaches the floor where it touched on loading; a record that reads
+    tension, the specimen glued, leaves the band).  Returns that sample's index.
+
+    >>> d = np.r_[np.linspace(0, 4, 41), np.linspace(3.9, 0, 40)]
+    >>> f = np.clip(np.r_[0.1 * d[:41], 0.1 * d[41:] - 0.15], 0, None)
+    >>> k = lift_off(d, f, 0.0, 0.001); k, round(float(d[k]), 6)
+    (65, 1.5)
+    >>> lift_off(d, np.r_[0.1 * d[:41], 0.1 * d[41:]], 0.0, 0.001) is None
+    True
+    """
+    d = np.asarray(displacement_mm, float)
+    f = np.asarray(force_n, float)
+    if d.size < 3 or not (noise_n > 0 and np.isfinite(noise_n)):
+        return None
+    peak = int(np.argmax(d))
+    end = peak + int(np.argmin(d[peak:])) + 1
+    if end - peak - 1 < LIFT_OFF_MIN_SAMPLES:
+        return None
+    u = np.arange(peak + 1, end)
+    at = np.abs(f[u] - floor_n) <= LIFT_OFF_BAND * noise_n
+    share = np.cumsum(at[::-1])[::-1] / np.arange(len(u), 0, -1)
+    ok = at & (share >= LIFT_OFF_SHARE) & (np.arange(len(u), 0, -1) >= LIFT_OFF_MIN_SAMPLES)
+    if not ok.any():
+        return None
+    k = int(u[np.argmax(ok)])
+    order = np.argsort(d[:peak + 1], kind="stable")
+    loaded = float(np.interp(d[k], d[:peak + 1][order], f[:peak + 1][order]))
+    if loaded - floor_n <= LIFT_OFF_LOADED * noise_n:
+        return None
+    return k
