@@ -198,3 +198,19 @@ def test_record_starting_loaded_and_cyclic_ramps():
     with pytest.raises(ContactNotInRecord, match="not in the record") as e:
         detect_contact(t, d, f)
     assert isinstance(e.value, ProcessingError)
+
+
+def test_a_sparse_record_names_its_few_samples_before_the_contact():
+    """30 samples over a ramp to 30 % strain, 4 of them before the contact at 0.5 mm: too few
+    to measure the unloaded level and its noise, so the contact must be given; the error had
+    said the force was "already rising at the start of the record (contact at or before the
+    first sample)", which the record's first samples contradict."""
+    from bsipipe.mechanics.contact import ContactNotInRecord
+    t, d, f = brain_ramp(7, gap_mm=0.5, rate_hz=1.0 / ((0.5 + 0.3 * HEIGHT_MM) / SPEED_MM_S / 30))
+    assert len(t) in (30, 31) and 3 <= np.count_nonzero(d < 0.5) <= 5
+    with pytest.raises(ContactNotInRecord, match=r"only \d sample\(s\) before the contact") as e:
+        detect_contact(t, d, f)
+    assert "already rising" not in str(e.value)
+    # with the unloaded samples there, the same ramp's contact is found
+    t, d, f = brain_ramp(7, gap_mm=0.5, rate_hz=10.0)
+    assert abs(detect_contact(t, d, f).displacement_mm - 0.5) < CONTACT_TOL_MM
