@@ -159,10 +159,12 @@ def detect_contact(time_s, displacement_mm, force_n) -> Contact:
         d0, degree, coef, sd = _fit_hinge(d[:end], f[:end])
         before = f[d < d0]
         if before.size < _MIN_PRECONTACT:
-            if before.size and n_early > before.size and np.count_nonzero(d < d0) == before.size:
-                # a sparse record: the contact is in it, after too few samples to measure the
-                # unloaded level and its noise (30 samples over the test, 4 before the contact,
-                # had been told "already rising at the first sample")
+            if before.size >= 2 and d0 - d[0] >= 0.05 * (d[-1] - d[0]):
+                # a sparse record: the contact is in it, well past the first sample (a twentieth of
+                # the ramp's travel or more), after too few samples to measure the unloaded level
+                # and its noise (30 samples over the test, 4 before the contact, had been told
+                # "already rising at the first sample"); a record starting loaded has its hinge
+                # within a sample or so of its start
                 raise ContactNotInRecord(
                     f"only {before.size} sample(s) before the contact (near displacement {d0:.4g} mm): too few to "
                     f"measure the unloaded load and its noise (at least {_MIN_PRECONTACT}); the contact point "
