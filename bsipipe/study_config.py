@@ -559,6 +559,13 @@ def _export_fe_config(section: dict, twin, sdir, base: Path, src: Path, where: s
             if given[k] is not None:
                 outside.append(given[k])
     d["inputs"] = inputs
+    if twin is not None and isinstance(d.get("checks", {}), dict):
+        # the checks' expected speed and depth are the experiment's design: on a twin, the
+        # twin's (export-fe's defaults are the sheep study's 12 mm/min and 4.8 mm; a twin
+        # indenting 3 mm at 30 mm/min had stopped the study at export-fe, "check failed")
+        checks = d.setdefault("checks", {})
+        checks.setdefault("speed_mm_per_min", twin.sequence.speed_mm_per_min)
+        checks.setdefault("depth_mm", twin.sequence.depth_mm)
     if twin is not None and indentor is None:
         pose, offset = _twin_indentor(twin)
         d["indentor"] = {"diameter_mm": twin.sequence.indentor_diameter_mm, "pose_xray": pose}

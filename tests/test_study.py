@@ -465,3 +465,28 @@ def test_sample_logs_regenerate_byte_for_byte(tmp_path):
     assert p.returncode == 0, p.stdout + p.stderr
     truth = json.loads((ROOT / "sample_data" / "logs" / "truth.json").read_text())
     assert len(truth["logs"]) == 3 and truth["tissue"]["params"]["mu_pa"] == 720.0
+
+
+def test_export_fe_checks_follow_the_twins_design(tmp_path):
+    """On a twin indenting 3 mm at 30 mm/min, export-fe's checks expect the twin's speed and
+    depth (its defaults, the sheep study's 12 mm/min and 4.8 mm, had stopped the study at
+    export-fe: "check failed: 30 mm/min, expected 12 +- 0.6"); checks the study config gives
+    are kept."""
+    from bsipipe.study_config import load_study, plan_study
+    cfg = yaml.safe_load(TINY.read_text())
+    cfg.setdefault("synth", {}).setdefault("sequence", {}).update(speed_mm_per_min=30.0, depth_mm=3.0)
+    p = tmp_path / "configs" / "t.yaml"
+    p.parent.mkdir()
+    (tmp_path / "sample_data").symlink_to(ROOT / "sample_data")
+    p.write_text(yaml.safe_dump(cfg))
+
+    def checks():
+        exp = next(x for x in plan_study(load_study(p, tmp_path / "o")) if x.stage == "export-fe")
+        return yaml.safe_load(exp.config_file[1])["checks"]
+
+    c = checks()
+    assert c["speed_mm_per_min"] == 30.0 and c["depth_mm"] == 3.0
+    cfg.setdefault("export-fe", {})["checks"] = {"depth_mm": 2.9}
+    p.write_text(yaml.safe_dump(cfg))
+    c = checks()
+    assert c["speed_mm_per_min"] == 30.0 and c["depth_mm"] == 2.9

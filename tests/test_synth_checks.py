@@ -105,3 +105,15 @@ def test_stale_staging_of_a_dead_run_is_removed(tmp_path):
     _run(_TINY, tmp_path, out)
     assert [d.name for d in out.glob(".synth-staging-*")] == [live.name]
     assert json.loads((out / "synth.json").read_text())["counts"]
+
+
+def test_beads_that_cannot_clear_the_rod_at_a_narrow_angle_name_the_angle():
+    """At 60 degrees between the beams the indentor's beads, on the bisector, are seen 3 mm from
+    the rod's axis against its 2.5 mm radius: the twin cannot place them, and the message names
+    the angle with the numbers (it had named only the beads' keys)."""
+    from bsipipe.synth.twin import TwinError
+    cfg = validate(SynthConfig, {"seed": 0, "geometry": {"angle_between_deg": 60}, "image": {"size_px": 512},
+                                 "calibration": {"views": 0, "stereo_views": 0}, "sequence": {"n_frames": 5}})
+    with pytest.raises(TwinError, match=r"angle_between_deg 60 each view sees them 3 mm from the rod's axis") as e:
+        Twin(cfg).truth()
+    assert "geometry.angle_between_deg" in str(e.value)

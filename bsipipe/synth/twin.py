@@ -717,8 +717,19 @@ def build_scene(cfg: SynthConfig, arms: dict[str, CArm], times: dict[str, np.nda
     what = {"indentor": "the indentor's beads", "reference": "the reference markers",
             "occluded": "the markers that pass behind the indentor (M2, M4)",
             "implanted": "the implanted markers"}[who]
+    hint = ""
+    if who == "indentor":
+        # the beads sit on the bisector of the two beams: each view sees them offset x sin(angle / 2)
+        # from the rod's axis (at 60 degrees, 3 mm for the default offset against a 2.5 mm rod
+        # radius: the message had named the beads' keys and not the angle)
+        half = np.deg2rad(cfg.geometry.angle_between_deg) / 2.0
+        seen = cfg.sequence.indentor_marker_offset_mm * np.sin(half)
+        keys = keys + ("geometry.angle_between_deg",)
+        hint = (f" (the beads sit on the bisector of the two C-arms' beams, so at geometry.angle_between_deg "
+                f"{cfg.geometry.angle_between_deg:g} each view sees them {seen:.2g} mm from the rod's axis, against "
+                f"its radius of {cfg.sequence.indentor_diameter_mm / 2:.2g} mm)")
     raise TwinError(f"could not place {what} so that they stay apart, inside the field of view and clear of "
-                    f"the indentor (as the design needs); change {', '.join(keys)}", key=keys[0])
+                    f"the indentor (as the design needs){hint}; change {', '.join(keys)}", key=keys[0])
 
 
 def _reference_layout(cfg: SynthConfig, arms: dict[str, CArm], psi: float, beams: list[np.ndarray],
