@@ -422,16 +422,16 @@ def _trimmed_power(x: np.ndarray) -> float:
 
 
 def temporal_noise_correlation(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> float | None:
-    r"""Lag-1 correlation :math:`ho` of the pixel noise of three consecutive frames ``a, b, c``
+    r"""Lag-1 correlation :math:`\rho` of the pixel noise of three consecutive frames ``a, b, c``
     (same shape), or None where the frames hold no noise (identical, or flat).
 
     A frame the C-arm averaged over time (image-intensifier lag, phosphor persistence, the
     recursive noise filter fluoroscopy units apply), :math:`y_t = (1-a)\,x_t + a\,y_{t-1}`,
-    carries noise that is an AR(1) sequence in time with :math:`ho = a`; the scene's static
-    part cancels in frame differences, whose powers are :math:`2\sigma^2(1-ho)` one frame
-    apart and :math:`2\sigma^2(1-ho^2)` two apart, so
+    carries noise that is an AR(1) sequence in time with :math:`\rho = a`; the scene's static
+    part cancels in frame differences, whose powers are :math:`2\sigma^2(1-\rho)` one frame
+    apart and :math:`2\sigma^2(1-\rho^2)` two apart, so
 
-    .. math::  ho = rac{P(c - a)}{P(c - b)} - 1
+    .. math::  \rho = \frac{P(c - a)}{P(c - b)} - 1
 
     on the differences high-passed along rows (``[1, -2, 1]``: a change of the picture's gain
     or level between the frames is not noise) and trimmed (:func:`_trimmed_power`).  About 0 for
