@@ -694,7 +694,7 @@ def _several_ramps(input_info: list[dict]) -> list[dict]:
 
 
 def _log_warnings(input_info: list[dict], key: str, code: str, text, fields) -> list[dict]:
-    """A ``code`` warning for each log whose ``input_info`` entry holds ``key``: ``text(name, c)``
+    """A ``code`` warning for each log whose ``input_info`` entry holds ``key`` (``c``): ``text(c)``
     its message after the log's name, ``fields(c)`` its keys beside ``log_name``."""
     from ..quality import warning
     return [warning(code, f"fit-ogden: {Path(info['path']).name}: {text(info[key])}", log, log_name=info["path"],

@@ -961,8 +961,8 @@ def load_resolution(disp: np.ndarray, force: np.ndarray) -> dict | None:
         return None
     stop = int(np.argmax(d)) + 1
     d, f = d[:stop], f[:stop]
-    dd = np.diff(f, 2)
-    noise = 1.482602218505602 * float(np.median(np.abs(dd - np.median(dd)))) / np.sqrt(6.0) if f.size > 3 else 0.0
+    from ..mechanics.contact import force_noise
+    noise = force_noise(f)
     if noise >= 0.5 * q:
         return None
     start = float(np.median(f[:min(10, f.size)]))

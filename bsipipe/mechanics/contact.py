@@ -286,8 +286,7 @@ def _robust_level(sample: np.ndarray, whole: np.ndarray) -> tuple[float, float]:
     noise = _MAD_TO_SD * float(np.median(np.abs(sample - level)))
     if noise > 0:
         return level, noise
-    dd = np.diff(whole, 2)
-    noise = _MAD_TO_SD * float(np.median(np.abs(dd - np.median(dd)))) / np.sqrt(6.0)
+    noise = force_noise(whole)
     if noise > 0:
         return level, noise
     steps = np.abs(np.diff(whole))

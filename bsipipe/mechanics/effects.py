@@ -35,6 +35,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from ..loop import Effect, LoopReport, SelectionRule, run_loop
+from .contact import force_noise
 from .fit import (FLAT_TOE, MIN_UNLOADED_SAMPLES, ForceModelSpec, LogData, contact_compression, fit_logs, fit_tables,
                   parameter_names, predict_force, toe_params)
 
@@ -410,10 +411,9 @@ def force_noise_rms(logs: Sequence[LogData]) -> float | None:
     for lg in logs:
         if len(lg.force_n) < 5:
             continue
-        d2 = np.diff(lg.force_n, 2)
-        s = 1.482602218505602 * float(np.median(np.abs(d2 - np.median(d2)))) / np.sqrt(6.0)
-        var += s * s * len(d2)
-        n += len(d2)
+        s = force_noise(lg.force_n)
+        var += s * s * (len(lg.force_n) - 2)
+        n += len(lg.force_n) - 2
     return float(np.sqrt(var / n)) if n else None
 
 
