@@ -1355,7 +1355,8 @@ def _tracks_incomplete(table: pd.DataFrame) -> list[dict]:
         return []
 
     def why(d):
-        gone = [f for f in d["not_found"] if f not in set(d["merged"])]
+        merged = set(d["merged"])
+        gone = [f for f in d["not_found"] if f not in merged]
         parts = ([f"not in {_runs(gone)}"] if gone else []) + ([f"merged in {_runs(d['merged'])}"] if d["merged"] else [])
         return "; ".join(parts)
 
