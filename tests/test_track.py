@@ -182,6 +182,74 @@ def test_occluded_marker_found_again():
     assert after["found"].all() and e.max() < 0.5
 
 
+def test_a_lookalike_met_while_the_marker_is_hidden_is_left_out():
+    """A marker hidden for 15 frames while a bead like it shows for one frame 8 px from its
+    path, inside the gate grown since it was last seen: the tracker takes the bead, and the
+    track's positions on either side (0.1 px a frame apart) show it was not the marker.  That
+    frame is left out (status ``excursion``, an ``excursion`` event with where it was) instead
+    of a position 8 px off with status ``found``."""
+    rng = np.random.default_rng(3)
+    n, size = 40, 160
+    t = np.arange(n, dtype=float)
+    M = np.column_stack([60 + 0.1 * t, 70 + 0.05 * t])
+    hidden = set(range(10, 25))
+    frames = _hidden_marker_frames(M, hidden, size, rng)
+    look = render_beads(np.array([[M[16, 0] + 8.0, M[16, 1]]]), 4.0, size, None, field=RayField(bead_camera(size)),
+                        noise=False, quantize=False)
+    frames[16] = np.clip(frames[16].astype(float) + look - np.median(look), 0, 255).astype(np.uint8)
+    res = track_view(frames, {"M": M[0]}, 4.0, "dark", roi="none")
+    s = res.table.sort_values("frame").set_index("frame")
+    assert not s.loc[sorted(hidden), "found"].any()
+    assert s.loc[16, "status"] == "excursion" and np.isnan(s.loc[16, "x_px"])
+    exc = [e for e in res.events if e["kind"] == "excursion"]
+    assert len(exc) == 1 and exc[0]["frame"] == 16 and abs(exc[0]["x_px"] - (M[16, 0] + 8.0)) < 0.5
+    assert exc[0]["distance_px"] > 7.0
+    # the stale events of the excursion are gone: lost at 10, found again once the marker shows
+    assert [(e["kind"], e["frame"]) for e in res.events if e["kind"] in ("lost", "refound")] == [("lost", 10),
+                                                                                               ("refound", 25)]
+    e = np.hypot(s["x_px"] - M[s.index, 0], s["y_px"] - M[s.index, 1])
+    assert s["found"].sum() == n - len(hidden) and e[s["found"]].max() < 0.5
+
+
+def test_excursions_only_where_the_track_on_both_sides_disagrees():
+    """``reject_excursions`` on tables: a short run between gaps on the line between its
+    neighbours, or on a curve the neighbours' distance allows, is kept; one off both is not;
+    a run at either end of the track (no neighbour on one side) is never judged."""
+    from bsipipe.imaging.track import reject_excursions
+
+    def table(xy, found):
+        n = len(xy)
+        return pd.DataFrame({"view": "v", "frame": np.arange(n), "time_s": np.arange(n) / 2.0, "marker": "M",
+                             "x_px": np.where(found, xy[:, 0], np.nan), "y_px": np.where(found, xy[:, 1], np.nan),
+                             "found": found, "snr": 10.0, "amplitude": 5.0, "area_px": 12.0, "sigma_px": 1.3,
+                             "pred_x_px": np.nan, "pred_y_px": np.nan, "gate_px": 6.0,
+                             "status": np.where(found, "found", "lost")})
+
+    n = 30
+    xy = np.column_stack([50 + 0.5 * np.arange(n), np.full(n, 40.0)])
+    found = np.ones(n, bool)
+    found[[5, 6, 7, 9, 10, 11]] = False          # a one-frame run at 8 between gaps
+    kept, ev = reject_excursions(table(xy, found), [], 6.0, "v")
+    assert kept["found"].sum() == found.sum() and not ev
+    off = xy.copy()
+    off[8] += [0.0, 9.0]                          # 9 px off the line, its neighbours 4 px apart: out
+    out, ev = reject_excursions(table(off, found), [], 6.0, "v")
+    assert not out.loc[8, "found"] and out.loc[8, "status"] == "excursion" and [e["frame"] for e in ev] == [8]
+    # a track that moved 20 px between the neighbours may have curved 9 px: kept
+    bend = xy.copy()
+    bend[12:, 1] += 20.0
+    bend[8] += [0.0, 9.0]
+    kept, ev = reject_excursions(table(bend, found), [], 6.0, "v")
+    assert kept.loc[8, "found"] and not ev
+    # the run at the start (frames 0-1, then a gap) has no neighbour before it: not judged
+    f2 = np.ones(n, bool)
+    f2[2:6] = False
+    off2 = xy.copy()
+    off2[:2] += [0.0, 9.0]
+    kept, ev = reject_excursions(table(off2, f2), [], 6.0, "v")
+    assert kept["found"].sum() == f2.sum() and not ev
+
+
 def test_hidden_marker_is_not_taken_onto_a_wire():
     """A marker that crosses a thin wire (a line 30 % darker across the field) while hidden for
     16 frames: its growing search window took peaks of the wire's top-hat ridge (here 2

@@ -27,6 +27,7 @@ import logging
 import math
 import os
 import sys
+from collections import Counter
 from pathlib import Path
 from typing import Annotated, Literal, Sequence, Union
 
@@ -1766,16 +1767,15 @@ def _marker_summary(table: pd.DataFrame, events: list[dict], fit) -> dict:
     """track.json's ``markers``: per marker and view its found frames, signal-to-noise and
     events; per marker its 3-D points' counts, ray gap and reprojection error."""
     markers: dict = {}
+    kinds = Counter((e.get("view"), e.get("marker"), e.get("kind")) for e in events)
     for (v, m), g in table.groupby(["view", "marker"], sort=False):
         snr = g.loc[g["found"], "snr"]
         markers.setdefault(m, {})[v] = {
             "found_frames": int(g["found"].sum()), "n_frames": int(len(g)),
             "median_snr": float(snr.median()) if len(snr) else None,
             "min_snr": float(snr.min()) if len(snr) else None,
-            "lost": int(sum(1 for e in events if e["view"] == v and e["marker"] == m and e["kind"] == "lost")),
-            "refound": int(sum(1 for e in events if e["view"] == v and e["marker"] == m and e["kind"] == "refound")),
-            "ambiguous": int(sum(1 for e in events if e["view"] == v and e["marker"] == m and e["kind"] == "ambiguous")),
-            "partial": int(sum(1 for e in events if e["view"] == v and e["marker"] == m and e["kind"] == "partial"))}
+            **{k: int(kinds[(v, m, k)]) for k in ("lost", "refound", "ambiguous", "partial")},
+            "excursions": int(kinds[(v, m, "excursion")])}
     if fit is not None:
         for m, g in fit.points.groupby("marker"):
             two = g[g["n_views"] == 2]
