@@ -180,7 +180,12 @@ def find_field_of_view(frame: np.ndarray, *, min_dark_fraction: float = 0.03,
     hs, ws = small.shape
     flat = small.ravel()
     k = min(int(0.5 * min_dark_fraction * flat.size), flat.size - 1)
-    surround = float(np.partition(flat, k)[k])
+    if np.count_nonzero(flat <= lo) > k:
+        # a black surround: the k-th smallest is the minimum itself (np.partition takes 2.5 ms
+        # on a 256 x 256 frame whose darkest 20 % tie, 50 times this test)
+        surround = lo
+    else:
+        surround = float(np.partition(flat, k)[k])
     yy, xx = np.ogrid[:hs, :ws]
     central = (xx - (ws - 1) / 2) ** 2 + (yy - (hs - 1) / 2) ** 2 <= (0.25 * min(hs, ws)) ** 2
     field = max(float(np.median(small[central])), float(np.median(flat)))
