@@ -378,6 +378,18 @@ def test_cli_a_dropped_frame_file_keeps_the_numbering(tmp_path):
     x2 = read_xmalab_2d(out / "xmalab_2d.csv")
     assert sorted(x2["frame"].unique()) == list(range(12))
     assert x2.loc[x2["frame"] == 5, ["x_px", "y_px"]].isna().all().all()
+    # DLTdv8's points file: the same positions in DLTdv's pixels (1 more), points named in track.json
+    from bsipipe.io.dltdv import read_dltdv_xypts
+    dl = read_dltdv_xypts(out / "dltdv_xypts.csv")
+    names = json.loads((out / "track.json").read_text())["dltdv"]["points"]
+    dl["marker"] = dl["marker"].map(names)
+    both = x2.merge(dl, on=["view", "frame", "marker"], suffixes=("", "_dl"))
+    assert len(both) == len(x2) and np.allclose(both["x_px"], both["x_px_dl"], equal_nan=True)
+    assert np.allclose(both["y_px"], both["y_px_dl"], equal_nan=True)
+    raw = pd.read_csv(out / "dltdv_xypts.csv")
+    assert list(raw.columns[:2]) == ["pt1_cam1_X", "pt1_cam1_Y"]
+    first = both[(both["frame"] == 0) & (both["marker"] == names["pt1"])]
+    assert raw["pt1_cam1_X"].iloc[0] == pytest.approx(first["x_px"].iloc[0] + 1.0)
 
 
 def test_automatic_mode_names_tracks():
@@ -688,6 +700,65 @@ def test_cli_track_blank_first_frame(tmp_path, seeded):
     else:
         assert "frames-without-markers" not in w
     _assert_on_the_beads(out, truth, range(1, n))
+
+
+@pytest.mark.parametrize("seeded", [True, False])
+def test_cli_track_one_view_inverted(tmp_path, seeded):
+    """Two views of five beads, the second view's video inverted (steel bright, as a C-arm set
+    to show bone dark gives it): the views' seeds had found 5 dark and 5 bright markers, dark
+    won the tie, and view b's first seed was found in no frame (exit 1; no single --polarity
+    could do).  Each view now keeps the polarity its own seeds (or, without seeds, its own
+    first frame) show clearly: both tracked, said in a bright-markers warning naming view b,
+    ``polarity_per_view`` in track.json; a config's polarity per view is taken as given."""
+    n = 5
+    a, truth = _five_beads(tmp_path, 160, n, 4.0, (0.5, 0.3), seed=11)
+    (tmp_path / "b").mkdir()
+    b = tmp_path / "b" / "frames"
+    b.mkdir()
+    for f in sorted(a.iterdir()):
+        cv2.imwrite(str(b / f.name), 255 - cv2.imread(str(f), cv2.IMREAD_GRAYSCALE))
+    out = tmp_path / "out"
+    args = ["track", "--view", f"a={a}", "--view", f"b={b}", "--fps", "2", "--diameter-px", "4", "-o", str(out)]
+    if seeded:
+        seeds = tmp_path / "seeds.csv"
+        pd.DataFrame([(v, f"M{j}", *truth[0][j]) for v in ("a", "b") for j in range(5)],
+                     columns=["view", "marker", "x_px", "y_px"]).to_csv(seeds, index=False)
+        args += ["--seeds", str(seeds)]
+    r = CliRunner().invoke(cli, args)
+    assert r.exit_code == 0, r.output
+    j = json.loads((out / "track.json").read_text())
+    assert j["polarity"] == "per view" and j["polarity_per_view"] == {"a": "dark", "b": "bright"}
+    w = {w["code"]: w for w in j["warnings"]}
+    assert w["bright-markers"]["views"] == ["b"]
+    m2 = pd.read_csv(out / "markers2d.csv")
+    for v in ("a", "b"):
+        got = m2[(m2["view"] == v) & m2["found"]]
+        assert len(got) == 5 * n, (v, len(got))
+        for _, row in got.iterrows():
+            assert np.hypot(*(truth[row["frame"]] - [row["x_px"], row["y_px"]]).T).min() < 0.3
+    # a polarity per view in a config: taken as given (here the right ones), every view named
+    cfg = tmp_path / "track.yaml"
+    cfg.write_text(f"views: {{a: {a}, b: {b}}}\nfps: 2\ndiameter_px: 4\npolarity: {{a: dark, b: bright}}\n")
+    r = CliRunner().invoke(cli, ["track", str(cfg), "-o", str(tmp_path / "out2")])
+    assert r.exit_code == 0, r.output
+    j2 = json.loads((tmp_path / "out2" / "track.json").read_text())
+    assert j2["polarity_per_view"] == {"a": "dark", "b": "bright"} and j2["polarity_source"] == "given"
+    cfg.write_text(f"views: {{a: {a}, b: {b}}}\nfps: 2\npolarity: {{a: dark}}\n")
+    r = CliRunner().invoke(cli, ["track", str(cfg), "-o", str(tmp_path / "out3")])
+    assert r.exit_code == 2 and "polarity" in r.output and not (tmp_path / "out3").exists(), r.output
+
+
+def test_view_polarities_keep_the_pooled_one_unless_a_view_says_clearly():
+    from bsipipe.imaging.marker_size import view_polarities
+    per = {"a": {"dark": 12, "bright": 0}, "b": {"dark": 0, "bright": 12}, "c": {"dark": 1, "bright": 1},
+           "d": {"dark": 2, "bright": 1}, "e": {"dark": 0, "bright": 0}}
+    assert view_polarities("dark", per, seeded=True) == {"a": "dark", "b": "bright", "c": "dark", "d": "dark",
+                                                          "e": "dark"}
+    # without seeds a view needs 3 strong markers of its polarity to keep its own
+    per["f"] = {"dark": 0, "bright": 2}
+    assert view_polarities("dark", per, seeded=False)["f"] == "dark"
+    assert view_polarities("dark", per, seeded=True)["f"] == "bright"
+    assert view_polarities("bright", {"g": {"dark": 1, "bright": 1}}, seeded=True) == {"g": "bright"}
 
 
 def test_cli_track_polarity_given_without_seeds_is_checked(tmp_path):

@@ -15,7 +15,7 @@ looks for a view time offset or clock drift, a jolting picture, identity swaps, 
 by a static spot (the only case where frames are read a second time, in windows) and partial
 occlusion.
 
-Writes ``DIR/markers2d.csv``, ``DIR/xmalab_2d.csv``, with a calibration
+Writes ``DIR/markers2d.csv``, ``DIR/xmalab_2d.csv``, ``DIR/dltdv_xypts.csv``, with a calibration
 ``DIR/markers3d.csv``, ``DIR/xmalab_3d.csv`` and ``DIR/loop.md``, the figures ``DIR/track.png`` (trajectories)
 and ``DIR/overlay.png`` (a frame with the detections), and ``DIR/track.json`` (last).
 """
@@ -134,11 +134,13 @@ class TrackConfig(StrictModel):
     views: dict[str, str] = Field(min_length=1, description="view name -> frames (folder, TIFF, video, DICOM)")
     calibration: str | None = Field(None, description="calibration.json of `bsipipe calibrate` (stereo for 3-D)")
     seeds: str | None = Field(None, description="seeds.csv view,marker,x_px,y_px (or an XMALab 2-D CSV)")
-    polarity: Literal["dark", "bright", "auto"] = Field(
-        "auto", description="markers darker or brighter than their surroundings; auto: with seeds, the polarity "
-                            "in which more seeded markers are found in the first frame (dark on a tie); without "
-                            "seeds, bright only where the first frames hold at least 3 bright markers of SNR 6 "
-                            "or more and twice as many as dark ones (beads are dark in raw X-ray frames)")
+    polarity: Literal["dark", "bright", "auto"] | dict[str, Literal["dark", "bright", "auto"]] = Field(
+        "auto", description="markers darker or brighter than their surroundings, or one per view ({cam1: dark, "
+                            "cam2: bright}: one C-arm's video inverted); auto: with seeds, the polarity in which "
+                            "more seeded markers are found in the first frame (dark on a tie); without seeds, "
+                            "bright only where the first frames hold at least 3 bright markers of SNR 6 or more "
+                            "and twice as many as dark ones (beads are dark in raw X-ray frames); a view whose "
+                            "own seeds or frames say clearly otherwise keeps its own")
     diameter_px: PositiveFloat | dict[str, PositiveFloat] | None = Field(
         None, description="marker diameter in px, or one per view ({cam1: 4, cam2: 7}: C-arms at different "
                           "magnifications); default estimated per view from the seeds (else from the first frames)")
@@ -162,12 +164,14 @@ class TrackConfig(StrictModel):
     tracking: TrackingConfig = TrackingConfig()
     figures: bool = True
 
-    @field_validator("diameter_px", "fps")
+    @field_validator("diameter_px", "fps", "polarity")
     @classmethod
     def _one_per_view(cls, v, info):
         if isinstance(v, dict) and info.data.get("views") is not None:
             views = info.data["views"]
-            if info.field_name == "fps":
+            if info.field_name == "polarity":
+                _every_view("a polarity", "polarities", v, views)
+            elif info.field_name == "fps":
                 # a rate for the views without time stamps only (a stamped video beside a
                 # folder of PNGs): the others keep their own times
                 unknown = [k for k in v if k not in views]
@@ -177,6 +181,10 @@ class TrackConfig(StrictModel):
             else:
                 _every_view("a diameter", "diameters", v, views)
         return v
+
+    def polarity_of(self, view: str) -> str:
+        """The polarity of ``view`` (one for every view, or its own)."""
+        return self.polarity[view] if isinstance(self.polarity, dict) else self.polarity
 
     def fps_of(self, view: str) -> float | None:
         """The frame rate given for ``view`` (one for every view, or its own)."""
@@ -947,7 +955,7 @@ def _track_views(cfg, views, seed_df, d: dict, det, tk, progress: bool, rois: di
             if cfg.fps_over_stamps and cfg.fps_of(v) is not None:
                 # the rate given wins over the source's own stamps (a container's default rate)
                 frames = (fr._replace(time_s=None) for fr in frames)
-            res = track_view(prefetched(frames), s, d[v], cfg.polarity, view=v,
+            res = track_view(prefetched(frames), s, d[v], cfg.polarity_of(v), view=v,
                              fps=cfg.fps_of(v), roi=rois[v], detection=det, settings=tk, on_frame=on_frame)
         except ValueError as e:
             raise InputError(str(e), path=path) from None
@@ -1074,21 +1082,30 @@ def _marker_size(cfg, views, firsts: dict, seed_df, rois: dict):
     ``(cfg with the polarity, (polarity source, counts or None), (diameter, per view, source))``.
     A diameter per view (config) is probed as no diameter: 4, 8 and 16 px."""
     from ..imaging.marker_size import (diameter_from_seeds, diameter_without_seeds, polarity_from_frames,
-                                       polarity_from_seeds, view_diameters)
+                                       polarity_from_seeds, view_diameters, view_polarities)
     one_d = cfg.diameter_px if not isinstance(cfg.diameter_px, dict) else None
     polarity = ("given", None)
-    if cfg.polarity == "auto":
+    auto = [v for v in views if cfg.polarity_of(v) == "auto"]
+    if auto:
         if seed_df is not None:
-            pol, note, counts = polarity_from_seeds(firsts, seed_df, one_d)
+            pol, note, counts = polarity_from_seeds({v: firsts.get(v) for v in auto},
+                                                    seed_df[seed_df["view"].isin(auto)], one_d)
         else:
-            pol, note, counts = polarity_from_frames(firsts, one_d, rois)
-        cfg = cfg.model_copy(update={"polarity": pol})
+            pol, note, counts = polarity_from_frames({v: firsts.get(v) for v in auto}, one_d, rois)
+        own = view_polarities(pol, counts.pop("per_view"), seeded=seed_df is not None)
+        per = {v: own.get(v, pol) if v in auto else cfg.polarity_of(v) for v in views}
+        cfg = cfg.model_copy(update={"polarity": per[views[0]] if len(set(per.values())) == 1 else per})
+        if isinstance(cfg.polarity, dict):
+            note += "; each view its own: " + ", ".join(f"{v} {p}" for v, p in per.items())
         polarity = (note, counts)
-        log.info("track: markers %s (%s)", pol, note)
-    elif seed_df is None:
+        log.info("track: markers %s (%s)", per[views[0]] if len(set(per.values())) == 1 else "dark or bright by view",
+                 note)
+    elif seed_df is None and not isinstance(cfg.polarity, dict):
         # a polarity given without seeds is checked as the automatic one would be chosen: the
         # wrong one tracks clutter (the seeds' own check is that they are found)
-        polarity = ("given", polarity_from_frames(firsts, one_d, rois)[2])
+        counts = polarity_from_frames(firsts, one_d, rois)[2]
+        counts.pop("per_view")
+        polarity = ("given", counts)
     d = cfg.diameter_px
     note = "given"
     if isinstance(d, dict):
@@ -1099,10 +1116,10 @@ def _marker_size(cfg, views, firsts: dict, seed_df, rois: dict):
         per_view_d = {v: d for v in views}
     if d is None:
         if seed_df is not None:
-            est = {v: diameter_from_seeds(firsts[v], seed_df[seed_df["view"] == v], cfg.polarity)
+            est = {v: diameter_from_seeds(firsts[v], seed_df[seed_df["view"] == v], cfg.polarity_of(v))
                    for v in dict.fromkeys(seed_df["view"]) if firsts.get(v) is not None}
         else:
-            est = {v: diameter_without_seeds(im, cfg.polarity, rois.get(v)) for v, im in firsts.items()
+            est = {v: diameter_without_seeds(im, cfg.polarity_of(v), rois.get(v)) for v, im in firsts.items()
                    if im is not None}
         d, per_view_d, note = view_diameters(est, views)
         log.info("track: marker diameter %s (%s)", ", ".join(f"{v} {x:.2f} px" for v, x in per_view_d.items())
@@ -1141,7 +1158,7 @@ def _check_seeds_found(table: pd.DataFrame, seed_df, together: list, info: dict,
                                   f"--diameter-px{hint}", path=path)
 
 
-def _larger_markers_said(warnings: list[dict], firsts: dict, seed_df, per_view_d: dict, polarity: str) -> None:
+def _larger_markers_said(warnings: list[dict], firsts: dict, seed_df, per_view_d: dict, polarity: str | dict) -> None:
     """Where the ``markers-rarely-found`` warning names a seeded marker that the first frame
     shows at a diameter 2-4 times the one tracked (a much larger bead among small ones, which
     the diameter estimate from the seeds leaves to the majority), say so in that warning
@@ -1159,7 +1176,8 @@ def _larger_markers_said(warnings: list[dict], firsts: dict, seed_df, per_view_d
                 row = seed_df[(seed_df["view"] == v) & (seed_df["marker"] == m)]
                 if row.empty:
                     continue
-                sig = larger_sigmas(img, row[["x_px", "y_px"]].to_numpy(float)[:1], d, polarity, (2.0, 3.0, 4.0))
+                sig = larger_sigmas(img, row[["x_px", "y_px"]].to_numpy(float)[:1], d,
+                                    polarity[v] if isinstance(polarity, dict) else polarity, (2.0, 3.0, 4.0))
                 if np.isfinite(sig[0]) and (size := diameter_from_sigmas(sig)) >= 2.0 * d:
                     bigger.setdefault(v, {})[m] = round(float(size), 1)
         if bigger:
@@ -1196,8 +1214,9 @@ def _seeds_far(table: pd.DataFrame, seed_df, per_view_d: dict, tk) -> list[dict]
                     + "; check that each took its own marker (the overlay figure)", log, distances_px=far)]
 
 
-def _seed_warnings(seed_df, polarity: str, polarity_note: str, polarity_counts) -> list[dict]:
-    """Warnings about the seeds and the markers' polarity, known before the tracks are."""
+def _seed_warnings(seed_df, polarity_of: dict, polarity_note: str, polarity_counts) -> list[dict]:
+    """Warnings about the seeds and the markers' polarity (``polarity_of``: view -> dark or
+    bright), known before the tracks are."""
     from ..quality import warning
     out = []
     later = seed_df.attrs.get("later") if seed_df is not None else None
@@ -1209,7 +1228,9 @@ def _seed_warnings(seed_df, polarity: str, polarity_note: str, polarity_counts) 
                                         for v, ms in later.items())
             + " (seeds are the markers' positions in the first frame: click them there, where they would be)",
             log, markers=later))
-    if polarity_note == "given" and polarity_counts is not None:
+    pols = set(polarity_of.values())
+    if polarity_note == "given" and polarity_counts is not None and len(pols) == 1:
+        polarity = pols.pop()
         other = "bright" if polarity == "dark" else "dark"
         n = polarity_counts
         if n[other] >= 3 and n[other] >= 2 * n[polarity]:
@@ -1218,11 +1239,14 @@ def _seed_warnings(seed_df, polarity: str, polarity_note: str, polarity_counts) 
                 f"track: --polarity {polarity} given, but the first frames hold {n[other]} {other} and {n[polarity]} "
                 f"{polarity} markers of SNR 6 or more: the tracks may follow clutter (--polarity {other}, or auto, "
                 "or seeds)", log, given=polarity, **n))
-    elif polarity_counts is not None and polarity == "bright":
+    elif polarity_counts is not None and "bright" in pols:
+        bright = [v for v, p in polarity_of.items() if p == "bright"]
+        which = "the markers are" if len(bright) == len(polarity_of) else f"{', '.join(bright)}'s markers are"
         out.append(warning(
-            "bright-markers", f"track: the markers are brighter than their surroundings ({polarity_note}; "
+            "bright-markers", f"track: {which} brighter than their surroundings ({polarity_note}; "
             "raw X-ray frames show steel beads dark: inverted or processed frames?): tracked as bright markers "
-            "(--polarity dark to override)", log, **polarity_counts))
+            "(--polarity dark, or a polarity per view in a config, to override)", log, views=bright,
+            **polarity_counts))
     return out
 
 
@@ -1576,7 +1600,7 @@ def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, 
     if det.parity == "none":
         # the frames can be searched again in windows, for the loop's track-capture
         data.windows = WindowSource({v: cfg.views[v] for v in pair}, {v: per_view_d[v] for v in pair},
-                                    cfg.polarity, det, channel=cfg.channel,
+                                    {v: cfg.polarity_of(v) for v in pair}, det, channel=cfg.channel,
                                     workers=decode_workers(),
                                     rois={v: rois[v] for v in pair if isinstance(rois.get(v), FieldOfView)})
     if not data.markers:
@@ -1808,7 +1832,7 @@ def _add_figures(rs, table: pd.DataFrame, points3d, first_images: dict, info: di
 
 #: Every file track writes (one an earlier run left in the folder that this run does not
 #: write is removed: a 2-D run does not write markers3d.csv, xmalab_3d.csv, loop.md).
-TRACK_OUTPUTS = ("markers2d.csv", "xmalab_2d.csv", "markers3d.csv", "xmalab_3d.csv", "loop.md", "track.png",
+TRACK_OUTPUTS = ("markers2d.csv", "xmalab_2d.csv", "dltdv_xypts.csv", "markers3d.csv", "xmalab_3d.csv", "loop.md", "track.png",
                  "overlay.png", "track.json")
 
 
@@ -1897,12 +1921,12 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     if table.empty or not table["found"].any():
         raise ProcessingError("no marker was found in any frame (check --polarity and --diameter-px)",
                               path=next(iter(cfg.views.values())))
-    warnings += _seed_warnings(seed_df, cfg.polarity, polarity_note, polarity_counts)
+    warnings += _seed_warnings(seed_df, {v: cfg.polarity_of(v) for v in views}, polarity_note, polarity_counts)
     if seed_df is not None:
         warnings += _seeds_far(table, seed_df, per_view_d, tk)
     table, more = _sequence_warnings(table, events, cfg, views, info, seed_df is not None)
     if seed_df is not None:
-        _larger_markers_said(more, first_images, seed_df, per_view_d, cfg.polarity)
+        _larger_markers_said(more, first_images, seed_df, per_view_d, {v: cfg.polarity_of(v) for v in views})
     warnings += more
 
     st = None
@@ -1958,14 +1982,20 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     if smoothing is not None:
         cols2d += ["sd_px", "x_px_smooth", "y_px_smooth", "sd_px_smooth", "smooth_outlier"]
     rs.add_csv("markers2d.csv", table[cols2d], float_format="%.6f", na_rep="")
+    from ..io.dltdv import format_dltdv_xypts
     from ..io.xmalab import format_xmalab_2d, format_xmalab_3d, xmalab_cameras
     marker_order = list(dict.fromkeys(table["marker"]))
     n_frames = int(table["frame"].max()) + 1
     rs.add_text("xmalab_2d.csv", format_xmalab_2d(table[table["found"]], views, marker_order, range(n_frames)))
+    text, points = format_dltdv_xypts(table[table["found"]], views, marker_order, range(n_frames))
+    rs.add_text("dltdv_xypts.csv", text)
     result: dict = {
         "views": info,
         "xmalab_cameras": xmalab_cameras(views),
-        "diameter_px": d, "diameter_px_per_view": per_view_d, "diameter_source": diameter_note, "polarity": cfg.polarity, "polarity_source": polarity_note,
+        "dltdv": {"file": "dltdv_xypts.csv", "cameras": xmalab_cameras(views), "points": points,
+                  "pixels": "DLTdv8's: origin at the top-left corner, the top-left pixel's centre at (1, 1)"},
+        "diameter_px": d, "diameter_px_per_view": per_view_d, "diameter_source": diameter_note, "polarity": cfg.polarity if isinstance(cfg.polarity, str) else "per view",
+        "polarity_per_view": {v: cfg.polarity_of(v) for v in views}, "polarity_source": polarity_note,
         "markers": _marker_summary(table, events, fit),
         "events": events,
         "warnings": warnings,

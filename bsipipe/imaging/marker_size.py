@@ -32,19 +32,21 @@ def polarity_from_seeds(firsts: dict, seeds: pd.DataFrame, diameter_px: float | 
     bright marker; the polarity that finds more of them wins, dark on a tie (raw X-ray frames
     show beads dark; an inverted export or a processed radiograph shows them bright).
     ``firsts``: each view's first frame (decoded by the caller).  Returns the polarity, a
-    note for track.json and the counts per polarity."""
-    seeded = [(firsts[v], g[["x_px", "y_px"]].to_numpy()) for v, g in seeds.groupby("view", sort=False)
+    note for track.json and the counts per polarity, and under ``"per_view"`` each view's own
+    (:func:`view_polarities`)."""
+    seeded = [(v, firsts[v], g[["x_px", "y_px"]].to_numpy()) for v, g in seeds.groupby("view", sort=False)
               if firsts.get(v) is not None]
-    total = sum(len(xy) for _, xy in seeded)
+    total = sum(len(xy) for _, _, xy in seeded)
     # beads larger than 4 px may need a larger diameter to be found at all
     for d in ([diameter_px] if diameter_px else [4.0, 8.0, 16.0]):
-        n = {p: sum(int(refine_at(img, xy, d, p, search_radius_px=max(6.0, 0.5 * d), **PROBE)["found"].sum())
-                    for img, xy in seeded) for p in ("dark", "bright")}
+        per = {v: {p: int(refine_at(img, xy, d, p, search_radius_px=max(6.0, 0.5 * d), **PROBE)["found"].sum())
+                   for p in ("dark", "bright")} for v, img, xy in seeded}
+        n = {p: sum(c[p] for c in per.values()) for p in ("dark", "bright")}
         if n["dark"] or n["bright"]:
             break
     pol = "bright" if n["bright"] > n["dark"] else "dark"
     return pol, (f"auto: from the seeds, {n['dark']} of {total} seeded markers found dark and {n['bright']} "
-                 f"bright in the first frame"), n
+                 f"bright in the first frame"), {**n, "per_view": per}
 
 
 def polarity_from_frames(firsts: dict, diameter_px: float | None, rois: dict | None = None
@@ -54,22 +56,40 @@ def polarity_from_frames(firsts: dict, diameter_px: float | None, rois: dict | N
     those of SNR 6 or more are counted.  Steel beads in a raw frame give a dozen such dark
     spots and hardly any bright ones; bright is taken only where it finds at least 3 and
     twice as many as dark.  ``firsts``: each view's first frame (decoded by the caller);
-    ``rois``: each view's region of interest (default: its field, found)."""
+    ``rois``: each view's region of interest (default: its field, found).  The counts come
+    with each view's own under ``"per_view"`` (:func:`view_polarities`)."""
     # without a diameter, at 4 px, then 8 and 16 px where 4 px finds fewer than 3 of either
     # (markers much larger than 4 px are not seen by a top-hat that small)
     for d in ([diameter_px] if diameter_px else [4.0, 8.0, 16.0]):
-        n = {"dark": 0, "bright": 0}
-        for v, img in firsts.items():
-            if img is None:
-                continue
-            for p in n:
-                n[p] += int((detect_arrays(img, d, p, (rois or {}).get(v), DetectionSettings(**PROBE))["snr"]
-                             >= 6.0).sum())
+        per = {v: {p: int((detect_arrays(img, d, p, (rois or {}).get(v), DetectionSettings(**PROBE))["snr"]
+                           >= 6.0).sum()) for p in ("dark", "bright")}
+               for v, img in firsts.items() if img is not None}
+        n = {p: sum(c[p] for c in per.values()) for p in ("dark", "bright")}
         if max(n.values()) >= 3:
             break
     pol = "bright" if n["bright"] >= 3 and n["bright"] >= 2 * n["dark"] else "dark"
     return pol, (f"auto: no seeds; {n['dark']} dark and {n['bright']} bright markers of SNR 6 or more in the first "
-                 f"frames{'' if d == 4.0 or diameter_px else f' at {d:g} px'}"), n
+                 f"frames{'' if d == 4.0 or diameter_px else f' at {d:g} px'}"), {**n, "per_view": per}
+
+
+def view_polarities(pooled: str, per_view: dict, *, seeded: bool) -> dict[str, str]:
+    """Each view's polarity: its own where its counts decide it clearly, else ``pooled`` (the
+    views' counts together).  Two C-arms need not show the markers alike: one whose video is
+    inverted (bone dark, steel bright) beside one that is not had found 12 seeded markers
+    dark and 12 bright, dark won the tie, and the bright view's first seed was not found in
+    any frame (exit 1), with no single ``--polarity`` to give.  Clearly: with seeds, one
+    polarity finding at least 2 of the view's seeded markers and twice as many as the other;
+    without, at least 3 strong markers and twice as many as the other (the rule
+    :func:`polarity_from_frames` applies to the views together)."""
+    least = 2 if seeded else 3
+    out = {}
+    for v, c in per_view.items():
+        own = None
+        for p, q in (("dark", "bright"), ("bright", "dark")):
+            if c[p] >= least and c[p] >= 2 * c[q]:
+                own = p
+        out[v] = own or pooled
+    return out
 
 
 def diameter_from_sigmas(sigmas) -> float:

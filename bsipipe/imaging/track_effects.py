@@ -1285,7 +1285,7 @@ class WindowSource:
     those reads.
     """
 
-    def __init__(self, sources: dict, diameter_px: float | dict, polarity="dark", detection=None, *,
+    def __init__(self, sources: dict, diameter_px: float | dict, polarity: str | dict = "dark", detection=None, *,
                  channel: int | None = None, workers: int = 1, rois: dict | None = None):
         self.sources = dict(sources)
         # view -> the FieldOfView a region of interest the user gave (its windows search it only)
@@ -1322,7 +1322,8 @@ class WindowSource:
                     continue
                 c = np.array([[q[1], q[2]] for q in qs], float)
                 r = np.array([q[3] for q in qs], float)
-                cand = window_arrays(fr.image, c, r, self.diameters[view], self.polarity, det, self.rois.get(view))
+                pol = self.polarity[view] if isinstance(self.polarity, dict) else self.polarity
+                cand = window_arrays(fr.image, c, r, self.diameters[view], pol, det, self.rois.get(view))
                 xy = np.column_stack([cand["x_px"], cand["y_px"]])
                 for q, cc, rr in zip(qs, c, r):
                     inside = np.hypot(xy[:, 0] - cc[0], xy[:, 1] - cc[1]) <= rr
