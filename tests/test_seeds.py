@@ -78,3 +78,39 @@ def test_latin1_seeds_are_read(tmp_path):
     p = tmp_path / "seeds.csv"
     p.write_bytes(b"view,marker,x_px,y_px\ncam1,M\xe9,10.5,20.5\n")
     assert read_seeds(p, ["cam1"])["marker"].tolist() == ["M\u00e9"]
+
+
+def test_dltdv_xypts_seeds_and_round_trip(tmp_path):
+    """DLTdv8's flat points file (``<prefix>xypts.csv``: ``pt1_cam1_X,...``, MATLAB pixels, the
+    top-left pixel's centre at (1, 1)) seeds a run as an XMALab file does, its coordinates
+    taken to bsipipe's (1 less); read as an XMALab file it had seeded every marker 1.4 px off.
+    The writer's text reads back to the same positions; a file so named whose header names its
+    markers is XMALab's; DLTdv's sparse export is refused with what to do."""
+    from bsipipe.io.dltdv import format_dltdv_xypts, is_dltdv_xypts, read_dltdv_xypts
+    p = tmp_path / "trial1xypts.csv"
+    p.write_text("pt1_cam1_X,pt1_cam1_Y,pt1_cam2_X,pt1_cam2_Y,pt2_cam1_X,pt2_cam1_Y,pt2_cam2_X,pt2_cam2_Y\n"
+                 "101.5,201.25,NaN,NaN,31,41,51,61\n"
+                 "102.5,202.25,11,21,NaN,NaN,52,62\n")
+    assert is_dltdv_xypts(p)
+    s = read_seeds(p, ["lateral", "dorsal"])
+    got = {(r.view, r.marker): (r.x_px, r.y_px) for r in s.itertuples()}
+    assert got == {("lateral", "pt1"): (100.5, 200.25), ("lateral", "pt2"): (30.0, 40.0),
+                   ("dorsal", "pt2"): (50.0, 60.0)}
+    assert s.attrs["later"] == {"dorsal": {"pt1": 1}}
+    back = read_dltdv_xypts(p)
+    text, names = format_dltdv_xypts(back.assign(view=back["view"].map({"cam1": "lateral", "cam2": "dorsal"})),
+                                     ["lateral", "dorsal"], ["pt1", "pt2"], range(2))
+    assert names == {"pt1": "pt1", "pt2": "pt2"}
+    assert [ln.split(",") for ln in text.splitlines()] == [ln.split(",") for ln in p.read_text().splitlines()]
+    # the same header in a file not so named, and a file so named with named markers: XMALab's
+    q = tmp_path / "clicks.csv"
+    q.write_text(p.read_text())
+    assert not is_dltdv_xypts(q) and read_seeds(q, ["a", "b"])["x_px"].iloc[0] == 101.5
+    r = tmp_path / "namedxypts.csv"
+    r.write_text("R1_cam1_X,R1_cam1_Y\n5,6\n")
+    assert not is_dltdv_xypts(r) and read_seeds(r, ["a"])["x_px"].iloc[0] == 5.0
+    sp = tmp_path / "sparsexypts.csv"
+    sp.write_text("xypts\n2\t8\t3\n1\t1\t101.5\n1\t2\t201.25\n2\t1\t102.5\n")
+    with pytest.raises(InputError, match="sparse") as e:
+        read_seeds(sp, ["a", "b"])
+    assert e.value.path is not None and "sparsexypts.csv" in str(e.value.path)

@@ -7,7 +7,10 @@ Two forms are read (:func:`read_seeds`):
 - an XMALab 2-D point CSV (:mod:`bsipipe.io.xmalab`), as a user clicks markers in XMALab:
   its first row (frame 0), ``camN`` the N-th view given (views all called ``camN``
   themselves are matched by name: :func:`bsipipe.io.xmalab.xmalab_cameras`).  Markers the file places only in
-  later frames are not seeds; they are listed in ``attrs["later"]``, for a warning.
+  later frames are not seeds; they are listed in ``attrs["later"]``, for a warning;
+- a DLTdv points file (``<prefix>xypts.csv``, :mod:`bsipipe.io.dltdv`), as a user clicks
+  markers in DLTdv8: the same, its points named ``pt1, pt2, ...`` and its pixel coordinates
+  (1 at the top-left pixel's centre) taken to bsipipe's.
 
 Errors are :class:`~bsipipe.errors.InputError` naming the file and, where there is one, the
 line.
@@ -38,12 +41,14 @@ def _separator(path) -> str:
 
 
 def read_seeds(path, views: Sequence[str], frame_shapes: dict | None = None) -> pd.DataFrame:
-    """``seeds.csv`` (``view,marker,x_px,y_px``) or an XMALab 2-D CSV (first row; ``camN``
-    is the N-th view, or the view called ``camN``).  Errors name the file and line.  ``frame_shapes`` (view -> (h, w)):
-    a seed outside its view's image is an error."""
+    """``seeds.csv`` (``view,marker,x_px,y_px``), an XMALab 2-D CSV or a DLTdv ``xypts.csv``
+    (first row; ``camN`` is the N-th view, or the view called ``camN``).  Errors name the file
+    and line.  ``frame_shapes`` (view -> (h, w)): a seed outside its view's image is an error."""
+    from .dltdv import is_dltdv_xypts, read_dltdv_xypts
     from .xmalab import is_xmalab_2d, read_xmalab_2d, xmalab_cameras
-    if is_xmalab_2d(path):
-        allx = read_xmalab_2d(path)
+    dltdv = is_dltdv_xypts(path)
+    if dltdv or is_xmalab_2d(path):
+        allx = read_dltdv_xypts(path) if dltdv else read_xmalab_2d(path)
         cams = xmalab_cameras(views)
         allx = allx[allx["view"].isin(list(cams)) & np.isfinite(allx["x_px"]) & np.isfinite(allx["y_px"])].copy()
         allx["view"] = allx["view"].map(cams)
