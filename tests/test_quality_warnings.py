@@ -315,6 +315,34 @@ def test_track_views_swapped_against_the_calibration_is_exit_2(twin, tmp_path):
     assert "sequence/cam2" in r.output and not out.exists()
 
 
+def test_track_view_mirrored_against_the_calibration_is_exit_2(twin, tmp_path):
+    """cam2's frames mirrored left-right (an export that flips the picture), its seeds clicked
+    on them: a view-orientation warning had stood beside a markers3d.csv of points off by
+    the ray gap, exit 0.  It is exit 2 naming the view and how its frames look turned, as
+    for swapped views, nothing written; without --calibration the same frames track in 2-D."""
+    import cv2
+    src = twin / "synth/sequence/cam2"
+    flip = tmp_path / "cam2"
+    flip.mkdir()
+    for f in sorted(src.iterdir()):
+        cv2.imwrite(str(flip / f.name), cv2.flip(cv2.imread(str(f), cv2.IMREAD_UNCHANGED), 1))
+    w = cv2.imread(str(next(iter(sorted(src.iterdir())))), cv2.IMREAD_UNCHANGED).shape[1]
+    seeds = pd.read_csv(twin / "synth/seeds.csv")
+    seeds.loc[seeds["view"] == "cam2", "x_px"] = w - 1 - seeds.loc[seeds["view"] == "cam2", "x_px"]
+    seeds.to_csv(tmp_path / "seeds.csv", index=False)
+    out = tmp_path / "out"
+    args = ["track", "--view", f"cam1={twin / 'synth/sequence/cam1'}", "--view", f"cam2={flip}",
+            "--seeds", tmp_path / "seeds.csv", "--fps", "0.5"]
+    r = CliRunner().invoke(cli, [str(a) for a in args + ["--calibration", twin / "calibrate/calibration.json",
+                                                         "-o", out]])
+    assert r.exit_code == 2 and "cam2's frames look mirrored left-right against the calibration" in r.output, \
+        r.output
+    assert str(flip) in r.output and not out.exists()
+    r = CliRunner().invoke(cli, [str(a) for a in args + ["-o", tmp_path / "two_d"]])
+    assert r.exit_code == 0, r.output
+    assert pd.read_csv(tmp_path / "two_d" / "markers2d.csv")["found"].mean() > 0.9
+
+
 def test_track_warns_when_the_calibration_no_longer_fits(twin, tmp_path):
     """The stereo calibration's rotation turned by 2 degrees (a C-arm moved after it was
     calibrated): every point's rays miss by about as much, which the ray-gap flags, judging
