@@ -26,7 +26,7 @@ import numpy as np
 import pandas as pd
 
 from ..errors import InputError
-from .xmalab import _positions, _write, read_xmalab_2d, xmalab_cameras
+from .xmalab import _write, camera_columns, read_xmalab_2d
 
 #: DLTdv8's pixel coordinates minus bsipipe's (MATLAB's pixel centres start at 1).
 DLTDV_OFFSET_PX = 1.0
@@ -79,22 +79,7 @@ def format_dltdv_xypts(points: pd.DataFrame, views: Sequence[str], markers: Sequ
     the map ``{"pt1": marker, ...}``.  ``views`` in DLTdv's camera order (as
     :func:`~bsipipe.io.xmalab.format_xmalab_2d`); ``markers`` (default: in order of first
     appearance) become ``pt1, pt2, ...``; ``frames`` (default ``0..max``) the rows."""
-    cams = xmalab_cameras(views)
-    views = list(cams.values())
-    p = points[points["view"].isin(views)]
-    markers = list(dict.fromkeys(p["marker"])) if markers is None else list(markers)
-    if frames is None:
-        frames = range(int(p["frame"].max()) + 1 if len(p) else 0)
-    frames = list(frames)
-    pairs = [(m, v) for m in markers for v in views]
-    arr = np.full((len(frames), 2 * len(pairs)), np.nan)
-    i = _positions(p["frame"].tolist(), frames)
-    k = _positions(zip(p["marker"].tolist(), p["view"].tolist()), pairs)
-    ok = (i >= 0) & (k >= 0)
-    arr[i[ok], 2 * k[ok]] = p["x_px"].to_numpy(float)[ok] + DLTDV_OFFSET_PX
-    arr[i[ok], 2 * k[ok] + 1] = p["y_px"].to_numpy(float)[ok] + DLTDV_OFFSET_PX
-    miss = ~np.isfinite(arr[:, 0::2]) | ~np.isfinite(arr[:, 1::2])
-    arr[:, 0::2][miss] = np.nan
-    arr[:, 1::2][miss] = np.nan
+    cams, markers, arr = camera_columns(points, views, markers, frames)
+    arr = arr + DLTDV_OFFSET_PX
     header = [f"pt{j + 1}_{c}_{a}" for j in range(len(markers)) for c in cams for a in "XY"]
     return _write(header, arr), {f"pt{j + 1}": m for j, m in enumerate(markers)}

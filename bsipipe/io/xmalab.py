@@ -84,8 +84,18 @@ def format_xmalab_2d(points: pd.DataFrame, views: Sequence[str], markers: Sequen
     order of first appearance) and ``frames`` (default ``0..max``; row *i* is frame *i*, as
     XMALab assumes) fix the layout.
     """
+    cams, markers, arr = camera_columns(points, views, markers, frames)
+    header = [f"{m}_{c}_{a}" for m in markers for c in cams for a in "XY"]
+    return _write(header, arr)
+
+
+def camera_columns(points: pd.DataFrame, views: Sequence[str], markers: Sequence[str] | None = None,
+                   frames: Sequence[int] | None = None) -> tuple[dict[str, str], list[str], np.ndarray]:
+    """The (frames, 2 x markers x cameras) array of XMALab's (and DLTdv's) 2-D layout, markers
+    outer, cameras inner, X then Y; a point missing in either coordinate is NaN in both (as
+    XMALab sets it).  Returns the cameras (:func:`xmalab_cameras`), the markers and the array."""
     cams = xmalab_cameras(views)
-    views = list(cams.values())             # XMALab's column order
+    views = list(cams.values())             # the files' column order
     p = points[points["view"].isin(views)]
     markers = list(dict.fromkeys(p["marker"])) if markers is None else list(markers)
     if frames is None:
@@ -99,12 +109,10 @@ def format_xmalab_2d(points: pd.DataFrame, views: Sequence[str], markers: Sequen
     ok = (i >= 0) & (k >= 0)
     arr[i[ok], 2 * k[ok]] = p["x_px"].to_numpy(float)[ok]
     arr[i[ok], 2 * k[ok] + 1] = p["y_px"].to_numpy(float)[ok]
-    # a point is missing in XMALab when either coordinate is
     miss = ~np.isfinite(arr[:, 0::2]) | ~np.isfinite(arr[:, 1::2])
     arr[:, 0::2][miss] = np.nan
     arr[:, 1::2][miss] = np.nan
-    header = [f"{m}_{c}_{a}" for m in markers for c in cams for a in "XY"]
-    return _write(header, arr)
+    return cams, markers, arr
 
 
 def format_xmalab_3d(points: pd.DataFrame, markers: Sequence[str] | None = None,
