@@ -552,3 +552,40 @@ def test_a_clipped_load_cell_is_named_in_the_warnings(case, tmp_path):
     assert len(clipped) == 1, warnings
     n_top = int((frame["load_n"] >= ceiling).sum())
     assert f"on {n_top} samples" in clipped[0]
+
+
+def test_a_registration_into_a_stretched_ct_is_read_whole(tmp_path):
+    """registration.json with ct_axis_scale (the register loop found the CT's slice spacing
+    off): export-fe had built its map from R, t_mm and scale alone, which leave the stretch
+    out, so the indentor 15 mm from the references along the axis was placed 0.75 mm off at
+    5 %.  It now maps points as registration.json's ``matrix`` does, and directions along
+    their stretched images (their lengths kept)."""
+    from scipy.spatial.transform import Rotation
+
+    from bsipipe.commands.export_fe import read_registration
+    from bsipipe.fe.export import _ct_direction
+    from bsipipe.geometry.registration import AxisScaledSimilarity, Similarity
+    R = Rotation.from_rotvec([0.1, -0.3, 0.5]).as_matrix()
+    T = AxisScaledSimilarity(R, np.array([3.0, -4.0, 80.0]), 1.01, 2, 1.05, np.array([1.0, 2.0, 70.0]))
+    reg = {"R": R.tolist(), "t_mm": T.t_mm.tolist(), "scale": 1.01, "matrix": T.matrix().tolist(),
+           "ct_axis_scale": {"axis": "z", "axis_index": 2, "factor": 1.05, "centre_mm": [1.0, 2.0, 70.0]}}
+    (tmp_path / "registration.json").write_text(json.dumps(reg))
+    got, _ = read_registration(tmp_path / "registration.json")
+    x = np.array([[0.0, 0.0, 0.0], [5.0, -3.0, 15.0], [-7.0, 2.0, -9.0]])
+    M = np.asarray(reg["matrix"])
+    assert np.allclose(got.apply(x), x @ M[:3, :3].T + M[:3, 3], atol=1e-12)
+    # R, t_mm and scale alone: up to (factor - 1) x the distance from the centre along z off
+    off = np.linalg.norm(Similarity(R, T.t_mm, 1.01).apply(x) - got.apply(x), axis=1)
+    assert off.max() > 0.5
+    d = _ct_direction(got, [0.0, 0.0, 2.0])
+    assert np.isclose(np.linalg.norm(d), 2.0) and np.allclose(np.cross(d, M[:3, :3] @ [0.0, 0.0, 2.0]), 0, atol=1e-12)
+    # without ct_axis_scale: the similarity, directions by R
+    del reg["ct_axis_scale"]
+    (tmp_path / "registration.json").write_text(json.dumps(reg))
+    sim, _ = read_registration(tmp_path / "registration.json")
+    assert isinstance(sim, Similarity) and np.allclose(_ct_direction(sim, [0.0, 0.0, 2.0]), R @ [0.0, 0.0, 2.0])
+    reg["ct_axis_scale"] = {"axis": "w", "factor": 1.05, "centre_mm": [0, 0, 0]}
+    (tmp_path / "registration.json").write_text(json.dumps(reg))
+    from bsipipe.errors import InputError
+    with pytest.raises(InputError, match="ct_axis_scale"):
+        read_registration(tmp_path / "registration.json")

@@ -63,6 +63,10 @@ Warnings (``registration.json`` ``warnings``, also logged; codes):
     from a frame-F position estimated from its nearest frames (linear in time between the
     nearest before and after, else the nearest one), named with the frames used and how far
     it moved between them.
+``ct-axis-scale``
+    The loop kept ``ct-axis-scale``: the CT's lengths along one of its axes are off (slice
+    spacing); the transform maps into the CT file's frame as it is, stretched
+    (``ct_axis_scale``, ``matrix``); R, t_mm and scale alone leave the stretch out.
 ``tre-not-estimated``
     No degrees of freedom left for the FLE.
 ``tre-unbounded``
@@ -635,6 +639,35 @@ def _skull_fixed(tracks: pd.DataFrame, frames: np.ndarray, refs: np.ndarray, fi:
     return out, report
 
 
+#: The slice-spacing error (relative) the ``ct-axis-scale-unidentified`` warning weighs: a
+#: reconstruction interval or an uncorrected gantry tilt (18 degrees) gives 5 % or more.
+UNSEEN_AXIS_SCALE = 0.05
+
+
+def _axis_scale_offsets(T, x_targets, factor: float, *, axis: int | None = None, fiducials=None,
+                        scale: bool = False) -> list[float]:
+    """How far (mm) a CT stretched by ``factor`` along ``axis`` puts each target ``x_targets``
+    (X-ray frame) from where a transform without that stretch maps it.
+
+    With ``fiducials`` (the references' X-ray positions): the CT file's frame is ``T``'s mapped
+    into a CT stretched about the references' centroid, and the transform is refitted to the
+    stretched references (rigid, or with ``scale``), as the loop without the effect would: the
+    error a spacing error that size leaves unseen.  Without: ``T`` is the
+    :class:`~bsipipe.geometry.registration.AxisScaledSimilarity` the loop fitted, and the offset
+    is that of its similarity part (the stretch taken out) against ``T``."""
+    from ..geometry.registration import AxisScaledSimilarity, fit_similarity
+
+    x = np.asarray(x_targets, dtype=float).reshape(-1, 3)
+    if not len(x):
+        return []
+    if fiducials is None:
+        return [float(v) for v in np.linalg.norm(T.apply(x) - T.similarity.apply(x), axis=1)]
+    f = np.asarray(fiducials, dtype=float)
+    S = AxisScaledSimilarity(T.R, T.t_mm, float(T.scale), axis, factor, T.apply(f).mean(axis=0))
+    refit = fit_similarity(f, S.apply(f), scale=scale)
+    return [float(v) for v in np.linalg.norm(refit.apply(x) - S.apply(x), axis=1)]
+
+
 def _noise_ceiling(noise: dict) -> float:
     """The loop's noise ceiling (mm, per coordinate) from the references' tracking noise
     (:func:`~bsipipe.geometry.registration.tracking_noise`; none measured: CT alone)."""
@@ -657,8 +690,8 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
     """
     from ..geometry import registration as reg
     from ..geometry.registration_effects import (MIN_REFERENCES, RegistrationData, RegistrationSpec,
-                                                 close_registration_loop, ct_positions, reference_checks,
-                                                 unresolved_motion)
+                                                 axis_scale_identification, close_registration_loop, ct_positions,
+                                                 reference_checks, unresolved_motion)
     from ..io.slicer import read_markups
     from ..provenance import ResultSet, provenance
     from ..quality import warning
@@ -767,13 +800,14 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
     used = [n for n, u in zip(found, fit.used) if u]
     fre = np.linalg.norm(fit.residual_vectors, axis=1)
     fre_rms = float(np.sqrt(np.mean(fre[fit.used] ** 2)))
-    fle, fle_dof = reg.estimate_fle(fit.residual_vectors[fit.used], scale=spec.scale)
+    axis_scaled = spec.ct_axis is not None
+    fle, fle_dof = reg.estimate_fle(fit.residual_vectors[fit.used], scale=spec.scale, axis_scale=axis_scaled)
     noise = reg.tracking_noise(pos_stat[:, fit.used])
     noise_3d = float(np.sqrt(3.0) * noise["sigma_mm"])
     # the FRE noise can give: the tracking noise and the CT localisation, at most about a voxel
     # (Fitzpatrick: <FRE^2> = (3N - p) / 3N FLE^2, 1 - 2/N for a rigid fit)
     n_fit = 3 * len(used)
-    ct_fre = CT_FLE_MAX_MM * math.sqrt(max(n_fit - reg.n_params(spec.scale), 0) / n_fit)
+    ct_fre = CT_FLE_MAX_MM * math.sqrt(max(n_fit - reg.n_params(spec.scale, axis_scaled), 0) / n_fit)
     fre_limit = math.hypot(NOISE_FACTOR * noise_3d, ct_fre) if np.isfinite(noise_3d) else float("nan")
     swaps = [{"references": list(c), "note": _relabel_note(c)} for c in spec.swapped]
     warnings += _reference_effect_warnings(report, has_check=bool(c_names))
@@ -907,6 +941,52 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
                         f"or the brain shifted since the CT", log,
             markers=bad, expected_mm=check_scale, limit_mm=check_limit))
 
+    axis_se = float("nan")
+    axis_scale_check = None
+    if axis_scaled:
+        # the FLE's own uncertainty as for the TRE (nu / (nu - 2) in the mean square)
+        axis_se = reg.axis_scale_se(T, x_used, fle, scale=spec.scale) * (
+            math.sqrt(fle_dof / (fle_dof - 2.0)) if fle_dof > 2 else float("nan"))
+        step = next(s for s in report.steps if s.effect.name == "ct-axis-scale")
+        chk = (step.evidence.get("outside") or {}).get("check")
+        off = _axis_scale_offsets(T, [targets[n] for n in t_names if n not in found], T.factor)
+        warnings.append(warning(
+            "ct-axis-scale",
+            f"register: the CT file's lengths along its {reg.CT_AXES[T.axis]} axis are {T.factor:.4g} (+- "
+            f"{axis_se:.2g}) times those the X-ray markers show (loop effect ct-axis-scale: FRE RMS "
+            f"{_fre_rms(step.before.fit):.3g} -> {_fre_rms(step.after.fit):.3g} mm"
+            + (f", markers localised in CT {chk['rms_before_mm']:.3g} -> {chk['rms_after_mm']:.3g} mm RMS" if chk else "")
+            + "): its slice spacing (reconstruction interval) is not what its header says, or a tilted gantry's "
+              "table increment was taken for it; registered into the CT file's frame as it is, stretched"
+            + (f" (the stretch moves the markers up to {max(off):.2g} mm from where the same transform without "
+               "it puts them)" if off else "")
+            + ", as any mesh made from this CT is: correct the CT's spacing and segment and register again; "
+              "registration.json's R, t_mm and scale alone leave the stretch out (matrix and ct_axis_scale hold it)",
+            log, axis=reg.CT_AXES[T.axis], factor=float(T.factor), factor_se=axis_se))
+    elif cfg.loop and np.isfinite(fle):
+        ident = axis_scale_identification(data, spec, fle)
+        tgt = [n for n in t_names if n not in found]
+        off = _axis_scale_offsets(T, [targets[n] for n in tgt], 1.0 + UNSEEN_AXIS_SCALE, axis=2,
+                                  fiducials=x_used, scale=spec.scale)
+        worse = {n: (o, float(tre[t_names.index(n)])) for n, o in zip(tgt, off)
+                 if not o <= float(tre[t_names.index(n)])}
+        # what the references can tell of a slice-spacing error, in registration.json: not a
+        # warning, as it is the reference layout's limit, the same whether the CT is right or not
+        # (a warning had been given on 5 of 5 correct CTs of the twin at 0.15 mm CT noise)
+        axis_scale_check = {
+            "identified": bool(ident["identified"]), "axis": "z", "n_references": ident["n_references"],
+            "lever_mm": ident["lever_mm"], "factor_se": ident["factor_se"], "scale_error": UNSEEN_AXIS_SCALE,
+            "beyond_tre_mm": {n: v[0] for n, v in worse.items()},
+            "note": (f"a slice spacing {100 * UNSEEN_AXIS_SCALE:g} % off, which these references "
+                     + ("could show" if ident["identified"] else "cannot show") + ", would move the points "
+                     "in beyond_tre_mm further than their stated TRE (tre_mm does not include it)")}
+        if not ident["identified"] and worse:
+            worst = max(worse, key=lambda n: worse[n][0])
+            log.info("register: the references cannot show a slice-spacing error of the CT (%d references, lever %.2g mm, "
+                     "factor known to +- %.2g); %g %% would move %s %.2g mm against its TRE %.2g mm",
+                     ident["n_references"], ident["lever_mm"], ident["factor_se"], 100 * UNSEEN_AXIS_SCALE,
+                     worst, worse[worst][0], worse[worst][1])
+
     if abs(float(T.scale) - 1.0) > MAX_PLAUSIBLE_SCALE_ERROR:
         warnings.append(warning(
             "large-scale",
@@ -916,10 +996,23 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
             f"this), or the CT's voxel size or the calibration target's spacing given wrong?  markers_ct.csv is in "
             "the CT file's units", log, scale=float(T.scale), limit=MAX_PLAUSIBLE_SCALE_ERROR))
 
+    axis_scale_json = None
+    if axis_scaled:
+        axis_scale_json = {"axis": reg.CT_AXES[T.axis], "axis_index": int(T.axis), "factor": float(T.factor),
+                           "factor_se": axis_se, "centre_mm": T.centre_mm.tolist(),
+                           "note": "the CT file's lengths along this axis are factor times those the X-ray "
+                                   "markers show (the loop's ct-axis-scale effect): its slice spacing or "
+                                   "reconstruction interval is off; factor_se from the fit at the estimated FLE"}
     result = {
         "R": T.R.tolist(), "t_mm": T.t_mm.tolist(), "scale": float(T.scale),
-        "maps": "x_ct = scale * R @ x_xray + t_mm (X-ray/calibration frame to the CT frame)",
+        "maps": ("x_ct = scale * R @ x_xray + t_mm (X-ray/calibration frame to the CT frame)" if not axis_scaled else
+                 "x_ct = c + D (scale * R @ x_xray + t_mm - c), D = I + (factor - 1) e e^T along ct_axis_scale.axis "
+                 "about c = ct_axis_scale.centre_mm (X-ray/calibration frame to the CT file's frame; matrix is the "
+                 "whole affine map; R, t_mm and scale alone map into a CT whose lengths along that axis are "
+                 "corrected, coinciding with the file's at c)"),
         "matrix": T.matrix().tolist(),
+        "ct_axis_scale": axis_scale_json,
+        "ct_axis_scale_check": axis_scale_check,
         "rotation_deg": reg.rotation_angle_deg(T.R),
         "frame": int(F), "time_s": None if not np.isfinite(time[fi]) else float(time[fi]),
         "ct_coordinate_system": markups.coordinate_system,

@@ -610,6 +610,17 @@ def _check(checks, warnings, name, value, expected, tol, unit, ok, on_fail, **ex
         warnings.append(msg)
 
 
+def _ct_direction(transform, v) -> np.ndarray:
+    """A direction ``v`` (X-ray frame) in the CT frame, its length kept: ``R v`` for a
+    similarity; along the image of ``v`` for a CT stretched along one of its axes
+    (:class:`~bsipipe.geometry.registration.AxisScaledSimilarity`)."""
+    v = np.asarray(v, float)
+    if not hasattr(transform, "factor"):
+        return transform.R @ v
+    u = transform.apply_vector(v)
+    return u * (np.linalg.norm(v) / np.linalg.norm(u))
+
+
 def build_handoff(cfg, *, fit: dict, transform, markers_ct: pd.DataFrame, log: LogRecord,
                   indentor_xray: pd.DataFrame | None = None, mesh=None) -> Handoff:
     """Compute the hand-off from values already read.
@@ -619,7 +630,7 @@ def build_handoff(cfg, *, fit: dict, transform, markers_ct: pd.DataFrame, log: L
     cfg : bsipipe.fe.config.ExportConfig
     fit : dict
         ``fit.json`` (``model``, ``params`` with an optional ``prony`` list).
-    transform : bsipipe.geometry.registration.Similarity
+    transform : bsipipe.geometry.registration.Similarity (or AxisScaledSimilarity)
         X-ray -> CT (``registration.json``).
     markers_ct : DataFrame
         ``markers_ct.csv``.
@@ -686,7 +697,7 @@ def build_handoff(cfg, *, fit: dict, transform, markers_ct: pd.DataFrame, log: L
                                key="indentor.markers", source=src)
         if not np.all(np.isfinite(t_x)):
             raise HandoffError("the X-ray table has no time_s for the indentor's frames", source=src)
-        axis_ct = None if ind.axis_xray is None else transform.R @ np.asarray(ind.axis_xray, float)
+        axis_ct = None if ind.axis_xray is None else _ct_direction(transform, ind.axis_xray)
         # the implanted markers lie in the brain, ahead of the indentor: they tell a fitted
         # direction of indentation from its reverse where the motion alone cannot
         brain = markers_ct[~markers_ct["marker"].isin(names)]
@@ -735,7 +746,7 @@ def build_handoff(cfg, *, fit: dict, transform, markers_ct: pd.DataFrame, log: L
                            else "markers_ct.csv (already in the CT frame)")
     else:
         pose = ind.pose_xray
-        axis = transform.R @ np.asarray(pose.axis, float)
+        axis = _ct_direction(transform, pose.axis)
         axis = axis / np.linalg.norm(axis)
         rest_tip = transform.apply(np.asarray(pose.tip_mm, float))
         if cfg.log.clock_offset_s is None:

@@ -8,6 +8,11 @@ CT point
    \mathbf y = s\,R\,\mathbf x + \mathbf t,
 
 with :math:`R` a rotation, :math:`\mathbf t` in mm and :math:`s = 1` for a rigid transform.
+Where the CT's lengths along one of its own axes are off (a slice spacing or reconstruction
+interval not the header's, a tilted gantry's table increment taken for the slice spacing), the
+CT file's frame is that of a correct CT stretched along the axis, and
+:class:`AxisScaledSimilarity` maps into it: :math:`\mathbf y = \mathbf c + D(sR\mathbf x + \mathbf t - \mathbf c)`,
+:math:`D = I + (k - 1)\,\mathbf e_a \mathbf e_a^T` (:func:`fit_axis_scaled`).
 :func:`fit_similarity` solves the least-squares problem
 :math:`\min \sum_i w_i |\mathbf y_i - s R \mathbf x_i - \mathbf t|^2` in closed form: the
 rotation by Kabsch's SVD of the centred points (scipy ``Rotation.align_vectors``), the scale
@@ -57,7 +62,7 @@ from scipy.spatial.transform import Rotation
 
 from ..distributions import chi2_sf, f_sf
 
-__all__ = ["Similarity", "fit_similarity", "n_params", "residual_vectors", "fre", "estimate_fle",
+__all__ = ["Similarity", "AxisScaledSimilarity", "fit_similarity", "fit_axis_scaled", "axis_scale_lever", "axis_scale_se", "n_params", "residual_vectors", "fre", "estimate_fle",
            "tre_fitzpatrick", "tre_linearized", "tre_perturbation", "leave_one_out",
            "reference_motion", "tracking_noise", "rigid_tracking_noise", "reference_motions", "skull_motion", "rotation_angle_deg",
            "point_configuration"]
@@ -106,9 +111,67 @@ class Similarity:
         return {"R": self.R.tolist(), "t_mm": self.t_mm.tolist(), "scale": float(self.scale)}
 
 
-def n_params(scale: bool) -> int:
-    """Parameters of the transform: 6 rigid, 7 with a uniform scale."""
-    return 7 if scale else 6
+#: The CT file's axes by index (an axial CT's slice axis is z, the third).
+CT_AXES = ("x", "y", "z")
+
+
+@dataclass(frozen=True)
+class AxisScaledSimilarity:
+    r"""A similarity followed by a stretch by ``factor`` along CT axis ``axis`` about ``centre_mm``:
+    :math:`\mathbf y = \mathbf c + D(sR\mathbf x + \mathbf t - \mathbf c)`, :math:`D = I + (k - 1)\,\mathbf e_a \mathbf e_a^T`.
+
+    The CT file's frame where its lengths along one axis are ``factor`` times the true ones (a
+    slice spacing off); ``similarity`` (``R``, ``t_mm``, ``scale``) is the map into a correct CT
+    that coincides with the file's at ``centre_mm`` (the references' CT centroid), so it is off by
+    :math:`(k - 1)` times a point's distance from ``centre_mm`` along the axis.
+
+    >>> T = AxisScaledSimilarity(np.eye(3), np.zeros(3), 1.0, 2, 1.1, np.array([0.0, 0.0, 10.0]))
+    >>> T.apply([[1.0, 2.0, 20.0]]).tolist()
+    [[1.0, 2.0, 21.0]]
+    >>> bool(np.allclose(T.matrix()[:3, :3] @ [1.0, 2.0, 20.0] + T.matrix()[:3, 3], [1.0, 2.0, 21.0]))
+    True
+    """
+
+    R: np.ndarray
+    t_mm: np.ndarray
+    scale: float
+    axis: int
+    factor: float
+    centre_mm: np.ndarray
+
+    @property
+    def similarity(self) -> Similarity:
+        return Similarity(self.R, self.t_mm, self.scale)
+
+    def _d(self) -> np.ndarray:
+        d = np.ones(3)
+        d[self.axis] = self.factor
+        return d
+
+    def apply(self, x) -> np.ndarray:
+        """Map points ``x`` (n, 3) or (3,) from the X-ray to the CT file's frame."""
+        return self.centre_mm + (self.similarity.apply(x) - self.centre_mm) * self._d()
+
+    def apply_vector(self, v) -> np.ndarray:
+        """Map displacement vectors (no translation): ``D scale R v``."""
+        return self.similarity.apply_vector(v) * self._d()
+
+    def matrix(self) -> np.ndarray:
+        """The 4 x 4 homogeneous (affine) matrix."""
+        D = np.diag(self._d())
+        m = np.eye(4)
+        m[:3, :3] = D @ (self.scale * self.R)
+        m[:3, 3] = D @ self.t_mm + (np.eye(3) - D) @ self.centre_mm
+        return m
+
+    def to_dict(self) -> dict:
+        return {"R": self.R.tolist(), "t_mm": self.t_mm.tolist(), "scale": float(self.scale),
+                "axis": CT_AXES[self.axis], "factor": float(self.factor), "centre_mm": self.centre_mm.tolist()}
+
+
+def n_params(scale: bool, axis_scale: bool = False) -> int:
+    """Parameters of the transform: 6 rigid, 7 with a uniform scale; one more with a scale along a CT axis."""
+    return 6 + int(scale) + int(axis_scale)
 
 
 def _as_points(a, name: str) -> np.ndarray:
@@ -146,10 +209,7 @@ def fit_similarity(x, y, *, scale: bool = False, weights=None) -> Similarity:
     >>> bool(np.allclose(T.R, R)), round(T.scale, 12)
     (True, 1.5)
     """
-    x = _as_points(x, "x")
-    y = _as_points(y, "y")
-    if x.shape != y.shape:
-        raise ValueError(f"x and y differ in shape: {x.shape} vs {y.shape}")
+    x, y = _point_pairs(x, y)
     n = len(x)
     if n < 3:
         raise ValueError(f"a 3-D transform needs at least 3 points, got {n}")
@@ -170,6 +230,100 @@ def fit_similarity(x, y, *, scale: bool = False, weights=None) -> Similarity:
         if not s > 0:
             raise ValueError(f"the fitted scale is not positive ({s:g}): the points do not correspond")
     return Similarity(R, ym - s * R @ xm, s)
+
+
+def _point_pairs(x, y) -> tuple[np.ndarray, np.ndarray]:
+    """Corresponding point sets ``x``, ``y`` as (n, 3) float arrays of one shape."""
+    x = _as_points(x, "x")
+    y = _as_points(y, "y")
+    if x.shape != y.shape:
+        raise ValueError(f"x and y differ in shape: {x.shape} vs {y.shape}")
+    return x, y
+
+
+def fit_axis_scaled(x, y, axis: int, *, scale: bool = False, centre=None) -> AxisScaledSimilarity:
+    r"""Least-squares :class:`AxisScaledSimilarity` with ``y ~ c + D(sRx + t - c)``, the stretch
+    along CT axis ``axis`` (0, 1, 2: x, y, z of the CT file) about ``centre`` (default: the
+    centroid of ``y``).
+
+    Gauss-Newton (scipy ``least_squares``, Levenberg-Marquardt) in a small rotation after the
+    similarity fit's, the translation, :math:`\ln s` (``scale``) and :math:`\ln k`, from the
+    similarity fit and :math:`k = 1`.  Needs :math:`3n \ge` the parameters (7, 8 with ``scale``).
+
+    >>> rng = np.random.default_rng(1)
+    >>> x = rng.normal(size=(5, 3)) * 10
+    >>> R = Rotation.from_rotvec([0.3, -0.2, 1.0]).as_matrix()
+    >>> T = fit_axis_scaled(x, (x @ R.T + [1.0, 2.0, 3.0]) * [1.0, 1.0, 1.07], 2)
+    >>> bool(np.allclose(T.R, R)), round(T.factor, 10)
+    (True, 1.07)
+    """
+    from scipy.optimize import least_squares
+
+    x, y = _point_pairs(x, y)
+    if axis not in (0, 1, 2):
+        raise ValueError(f"axis must be 0, 1 or 2, not {axis!r}")
+    p = n_params(scale, True)
+    if 3 * len(x) < p:
+        raise ValueError(f"a scale along a CT axis needs at least {-(-p // 3)} points, got {len(x)}")
+    c = y.mean(axis=0) if centre is None else np.asarray(centre, dtype=float)
+    T0 = fit_similarity(x, y, scale=scale)
+    R0 = Rotation.from_matrix(T0.R)
+
+    def unpack(v):
+        s = float(T0.scale * np.exp(v[6])) if scale else 1.0
+        return (Rotation.from_rotvec(v[:3]) * R0).as_matrix(), v[3:6], s, float(np.exp(v[-1]))
+
+    def resid(v):
+        R, t, s, k = unpack(v)
+        return (AxisScaledSimilarity(R, t, s, axis, k, c).apply(x) - y).ravel()
+
+    v0 = np.concatenate([np.zeros(3), T0.t_mm, [0.0] * int(scale), [0.0]])
+    sol = least_squares(resid, v0, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    R, t, s, k = unpack(sol.x)
+    if not (np.isfinite(k) and k > 0):
+        raise ValueError(f"the fitted scale along CT axis {CT_AXES[axis]} is not positive ({k:g})")
+    return AxisScaledSimilarity(R, np.asarray(t, float), s, axis, k, c)
+
+
+def axis_scale_lever(T, x, axis: int, *, scale: bool = False) -> float:
+    r"""How well points determine a scale along CT axis ``axis``: the lever (mm) of :math:`\ln k`.
+
+    With :math:`J` the Jacobian of the mapped points ``T(x)`` (n, 3) with respect to the
+    transform's parameters and :math:`\ln k` (at :math:`k = 1`), ``lever`` :math:`=
+    1/\sqrt{[(J^TJ)^{-1}]_{kk}}`: the root sum of squares of the points' offsets along the axis
+    (from their centroid) that no rotation, translation (or uniform scale) can mimic.  A least-squares :math:`k` from those points has standard error
+    :math:`\sigma/\mathrm{lever}` for a per-axis localisation error :math:`\sigma`; 0 where the
+    points lie in a plane across the axis (a stretch along it is then a translation).
+
+    >>> sq = np.array([[10.0, 10, 0], [-10, 10, 0], [-10, -10, 0], [10, -10, 0]])
+    >>> axis_scale_lever(Similarity(np.eye(3), np.zeros(3)), sq, 2)
+    0.0
+    >>> round(axis_scale_lever(Similarity(np.eye(3), np.zeros(3)), sq, 0), 6)
+    20.0
+    """
+    x = _as_points(x, "x")
+    Ta = AxisScaledSimilarity(T.R, T.t_mm, float(T.scale), axis, 1.0, T.apply(x).mean(axis=0))
+    J = _jacobian(Ta, x, scale).reshape(-1, n_params(scale, True))
+    try:
+        u = np.linalg.svd(J, compute_uv=False)
+        if u[-1] <= 1e-9 * u[0]:
+            return 0.0
+        return float(1.0 / np.sqrt(np.linalg.inv(J.T @ J)[-1, -1]))
+    except np.linalg.LinAlgError:
+        return 0.0
+
+
+def axis_scale_se(T: AxisScaledSimilarity, x_fiducials, fle_mm: float, *, scale: bool) -> float:
+    r"""Standard error of ``T.factor`` (first order) from fiducials ``x_fiducials`` (n, 3, X-ray
+    frame) with isotropic localisation errors of RMS ``fle_mm``: ``factor`` times the square root
+    of the :math:`\ln k` entry of :math:`(\mathrm{FLE}^2/3)(J^TJ)^{-1}`."""
+    J = _jacobian(T, _as_points(x_fiducials, "x_fiducials"), scale)
+    J = J.reshape(-1, J.shape[-1])
+    try:
+        var = float(np.linalg.inv(J.T @ J)[-1, -1])
+    except np.linalg.LinAlgError:
+        return float("inf")
+    return float(T.factor * fle_mm / np.sqrt(3.0) * np.sqrt(max(var, 0.0)))
 
 
 #: RMS distance from their centroid (mm) below which points are taken to coincide (far below
@@ -218,19 +372,20 @@ def fre(T: Similarity, x, y) -> np.ndarray:
     return np.linalg.norm(residual_vectors(T, x, y), axis=1)
 
 
-def estimate_fle(residuals, *, scale: bool) -> tuple[float, int]:
+def estimate_fle(residuals, *, scale: bool, axis_scale: bool = False) -> tuple[float, int]:
     """RMS 3-D fiducial localisation error from a fit's residual vectors (n, 3).
 
     :math:`\\widehat{\\mathrm{FLE}}^2 = 3\\,\\mathrm{RSS}/(3n - p)`, unbiased for isotropic
     Gaussian errors to first order; returns ``(fle_mm, dof)``.  With no degrees of freedom
-    left (three points and a scale) the estimate is NaN.
+    left (three points and a scale) the estimate is NaN.  ``axis_scale``: the fit has a scale
+    along a CT axis too (one parameter more).
 
     >>> r = np.array([[0.1, 0, 0], [-0.1, 0, 0], [0, 0.1, 0], [0, -0.1, 0]])
     >>> fle, dof = estimate_fle(r, scale=False); dof, round(fle, 6)
     (6, 0.141421)
     """
     r = np.asarray(residuals, dtype=float)
-    dof = 3 * len(r) - n_params(scale)
+    dof = 3 * len(r) - n_params(scale, axis_scale)
     if dof <= 0:
         return float("nan"), dof
     return float(np.sqrt(3.0 * np.sum(r * r) / dof)), dof
@@ -264,13 +419,18 @@ def tre_fitzpatrick(fiducials, targets, fle_mm: float) -> np.ndarray:
     return np.sqrt(fle_mm ** 2 / n * (1.0 + total / 3.0))
 
 
-def _jacobian(q: np.ndarray, scale: bool) -> np.ndarray:
-    """d(s R x + t)/d(params) at points with ``q = s R x`` (m, 3): rows (m, 3, p).
+def _jacobian(T, x: np.ndarray, scale: bool) -> np.ndarray:
+    """d T(x) / d(params) at X-ray points ``x`` (m, 3): rows (m, 3, p).
 
-    Parameters: a small rotation ``w`` applied after R (``d(sRx) = w x q = -[q]x w``),
-    the translation, and ``d ln s`` (``d(sRx) = q d ln s``)."""
+    Parameters: a small rotation ``w`` applied after R (``d(sRx) = w x q = -[q]x w`` with
+    ``q = s R x``), the translation, ``d ln s`` (``d(sRx) = q d ln s``, with ``scale``) and, for an
+    :class:`AxisScaledSimilarity`, ``d ln k`` (``e (e . (T(x) - c))``); its ``D`` multiplies the
+    similarity's columns (the same span for the translation)."""
+    x = np.atleast_2d(np.asarray(x, dtype=float))
+    q = T.scale * x @ T.R.T
+    axis = getattr(T, "axis", None)
     m = len(q)
-    J = np.zeros((m, 3, n_params(scale)))
+    J = np.zeros((m, 3, n_params(scale, axis is not None)))
     qx, qy, qz = q[:, 0], q[:, 1], q[:, 2]
     zero = np.zeros(m)
     J[:, :, :3] = -np.stack([np.stack([zero, -qz, qy], -1),
@@ -279,6 +439,9 @@ def _jacobian(q: np.ndarray, scale: bool) -> np.ndarray:
     J[:, :, 3:6] = np.eye(3)
     if scale:
         J[:, :, 6] = q
+    if axis is not None:
+        J[:, :, :-1] *= T._d()[None, :, None]
+        J[:, axis, -1] = (T.apply(x) - T.centre_mm)[:, axis]
     return J
 
 
@@ -289,13 +452,15 @@ def tre_linearized(T: Similarity, x_fiducials, x_targets, fle_mm: float, *, scal
     ``fle_mm**2 / 3``); the least-squares parameters then have covariance
     :math:`\\sigma^2 (J^T J)^{-1}` and the error at a target :math:`\\mathbf r` is
     :math:`\\mathrm{TRE}^2 = \\operatorname{tr}(J_r \\operatorname{Cov} J_r^T)`.  For a rigid
-    fit this equals :func:`tre_fitzpatrick`.
+    fit this equals :func:`tre_fitzpatrick`.  An :class:`AxisScaledSimilarity` ``T`` carries its
+    scale along the CT axis as one parameter more (its uncertainty is in the TRE).
     """
     xf = _as_points(x_fiducials, "x_fiducials")
     xt = np.atleast_2d(np.asarray(x_targets, dtype=float))
-    Jf = _jacobian(T.scale * xf @ T.R.T, scale).reshape(-1, n_params(scale))
+    Jf = _jacobian(T, xf, scale)
+    Jf = Jf.reshape(-1, Jf.shape[-1])
     cov = (fle_mm ** 2 / 3.0) * np.linalg.inv(Jf.T @ Jf)
-    Jt = _jacobian(T.scale * xt @ T.R.T, scale)
+    Jt = _jacobian(T, xt, scale)
     return np.sqrt(np.einsum("mip,pq,miq->m", Jt, cov, Jt))
 
 
@@ -311,7 +476,8 @@ def tre_perturbation(T: Similarity, x_fiducials, x_targets, fle_mm: float, *, sc
     exceeded the plug-in p95 in 8-20 % of trials instead of 5 %).  Returns
     ``{"rms_mm": (m,), "p95_mm": (m,), "n_draws": n, "seed": seed}``; the RMS has a relative
     Monte-Carlo standard error of about ``1 / sqrt(6 n)`` (about 1 % for n = 2000; more with
-    ``fle_dof``).
+    ``fle_dof``).  An :class:`AxisScaledSimilarity` ``T`` is refitted with its scale along the CT
+    axis (:func:`fit_axis_scaled`, about the same centre).
     """
     xf = _as_points(x_fiducials, "x_fiducials")
     xt = np.atleast_2d(np.asarray(x_targets, dtype=float))
@@ -322,7 +488,9 @@ def tre_perturbation(T: Similarity, x_fiducials, x_targets, fle_mm: float, *, sc
     err = np.empty((n_draws, len(xt)))
     for k in range(n_draws):
         s_k = sigma if fle_dof is None else sigma * math.sqrt(fle_dof / rng.chisquare(fle_dof))
-        Tk = fit_similarity(xf, y0 + rng.normal(0.0, s_k, y0.shape), scale=scale)
+        yk = y0 + rng.normal(0.0, s_k, y0.shape)
+        Tk = (fit_similarity(xf, yk, scale=scale) if getattr(T, "axis", None) is None
+              else fit_axis_scaled(xf, yk, T.axis, scale=scale, centre=T.centre_mm))
         err[k] = np.linalg.norm(Tk.apply(xt) - t0, axis=1)
     return {"rms_mm": np.sqrt(np.mean(err ** 2, axis=0)), "p95_mm": np.quantile(err, 0.95, axis=0),
             "n_draws": int(n_draws), "seed": int(seed)}

@@ -1,4 +1,4 @@
-r"""The registration stage's loop: its model spec, its fit, and its three effects.
+r"""The registration stage's loop: its model spec, its fit, and its four effects.
 
 Declared model: the references are fixed to the skull, and the X-ray frame maps to the CT
 frame rigidly (``--scale``: with a uniform scale).  The fit uses the references' X-ray
@@ -49,6 +49,28 @@ positions in the registration frame F; its residual is the 3N coordinates of
     reference fit the references about equally (a turn by 180 degrees about the other
     diagonal); only (c) tells them apart.
 
+``ct-axis-scale``
+    The CT's lengths along one of its axes are off: a slice spacing (reconstruction interval)
+    that is not the header's slice thickness, or a tilted gantry's table increment taken for
+    the spacing (off by :math:`1/\cos` of the tilt: 5 % at 18 degrees).  Every CT position is
+    stretched along that axis, so no rigid (or uniformly scaled) transform fits: the
+    references' residuals grow with their spread along the axis, and markers far from the
+    references along it (implanted markers below a craniotomy, on an axial CT) are off by
+    :math:`(k - 1)` times that distance while the references fit well.  One parameter,
+    :math:`\ln k`, along the CT axis with the strongest outside evidence (below; then the best
+    fit; the slice axis, z, on a tie); the
+    transform is :class:`~bsipipe.geometry.registration.AxisScaledSimilarity` about the
+    references' CT centroid.  Tried with four references or more, on the axes along which they
+    determine a stretch (:func:`~bsipipe.geometry.registration.axis_scale_lever` above zero).
+    Outside evidence: the references' own F test of the added parameter,
+    :math:`F = (\mathrm{RSS}_0 - \mathrm{RSS}_1)/(\mathrm{RSS}_1/(3N - p - 1))` on (1, 3N - p - 1)
+    degrees of freedom, as :math:`\chi^2_1` of equal tail probability minus :math:`\ln 3N` (the
+    parameter) minus :math:`2 \ln K` (the choice among the :math:`K` axes tried): as for the
+    held-out test, twelve numbers are too few for the Gaussian BIC, whose noise variance is
+    known to 5 degrees of freedom; plus (c), which can be negative.  With a 5 dof F test the
+    references alone need a stretch residual several times their noise; the implanted
+    markers (c) carry most of the evidence where the CT localises the references coarsely.
+
 (c) Markers localised in CT that are not references (implanted markers: the same check
 ``registration.json`` reports as ``ct_check_mm``) were not fitted, so they judge any
 transform from the outside: with :math:`m` of them at their X-ray positions at rest,
@@ -75,11 +97,12 @@ import numpy as np
 
 from ..distributions import chi2_isf, f_sf
 from ..loop import Effect, LoopReport, run_loop
-from .registration import Similarity, fit_similarity, leave_one_out, n_params, reference_motion, rounding_rss
+from .registration import (CT_AXES, Similarity, axis_scale_lever, fit_axis_scaled, fit_similarity, leave_one_out,
+                           n_params, reference_motion, rounding_rss)
 
 __all__ = ["RegistrationSpec", "RegistrationData", "RegistrationFit", "fit_registration",
            "registration_covariates", "registration_effects", "close_registration_loop",
-           "reference_checks", "ct_positions", "motion_rivals", "unresolved_motion"]
+           "reference_checks", "ct_positions", "motion_rivals", "unresolved_motion", "axis_scale_identification"]
 
 #: Fewest references that determine the transform.
 MIN_REFERENCES = 3
@@ -90,14 +113,18 @@ class RegistrationSpec:
     """The registration model: ``scale`` on/off, the references taken as moved, and the
     cycles of references whose CT labels are mixed up (``swapped``, X-ray names: in a cycle
     ``(c0, c1, ..., ck)`` the CT file's ``c1`` is the X-ray ``c0``, its ``c2`` the X-ray
-    ``c1``, ..., its ``c0`` the X-ray ``ck``; a pair is an exchange)."""
+    ``c1``, ..., its ``c0`` the X-ray ``ck``; a pair is an exchange); ``ct_axis``: the CT axis
+    (0, 1, 2: x, y, z of the CT file) along which the CT's lengths are scaled, or None."""
 
     scale: bool = False
     moved: tuple[str, ...] = ()
     swapped: tuple[tuple[str, ...], ...] = ()
+    ct_axis: int | None = None
 
     def describe(self) -> str:
         s = "similarity (rigid + uniform scale)" if self.scale else "rigid"
+        if self.ct_axis is not None:
+            s += f", then a scale along the CT's {CT_AXES[self.ct_axis]} axis"
         if self.swapped:
             s += "; CT labels " + ", ".join(describe_cycle(c) for c in self.swapped) + " given back"
         if self.moved:
@@ -199,16 +226,22 @@ def fit_registration(data: RegistrationData, spec: RegistrationSpec) -> Registra
     if used.sum() < MIN_REFERENCES:
         raise ValueError(f"{int(used.sum())} references left, the transform needs {MIN_REFERENCES}")
     y = ct_positions(data, spec)
-    T = fit_similarity(data.x_mm[used], y[used], scale=spec.scale)
+    if spec.ct_axis is None:
+        T = fit_similarity(data.x_mm[used], y[used], scale=spec.scale)
+    else:
+        T = fit_axis_scaled(data.x_mm[used], y[used], spec.ct_axis, scale=spec.scale)
     rv = y - T.apply(data.x_mm)
     res = rv.copy()
     res[~used] = 0.0   # absorbed by the moved reference's free displacement
     params = {"rotation_vector_rad": _rotvec(T.R), "t_mm": T.t_mm.tolist(), "scale": float(T.scale)}
+    if spec.ct_axis is not None:
+        params.update(ct_axis=CT_AXES[spec.ct_axis], ct_axis_scale=float(T.factor))
     if spec.swapped:
         params["label_swaps"] = [list(p) for p in spec.swapped]
     for n in spec.moved:
         params[f"displacement_{n}_mm"] = rv[data.index(n)].tolist()
-    return RegistrationFit(spec, T, used, rv, res.ravel(), params, n_params(spec.scale) + 3 * len(spec.moved))
+    return RegistrationFit(spec, T, used, rv, res.ravel(),
+                           params, n_params(spec.scale, spec.ct_axis is not None) + 3 * len(spec.moved))
 
 
 def _rotvec(R) -> list[float]:
@@ -529,6 +562,97 @@ def _swap_evidence(data: RegistrationData, spec: RegistrationSpec, cycles: tuple
             "heldout_failing_after": failing, "versus_moved_reference": versus, "note": note}
 
 
+#: The CT axes the ct-axis-scale effect tries, the slice axis (z) first: it is kept on a tie.
+AXIS_ORDER = (2, 0, 1)
+
+
+def _axis_levers(data: RegistrationData, spec: RegistrationSpec) -> dict[int, float]:
+    """Per CT axis, :func:`~bsipipe.geometry.registration.axis_scale_lever` (mm) of the references
+    ``spec`` uses, at its fitted transform."""
+    used = np.array([n not in spec.moved for n in data.names])
+    y = ct_positions(data, spec)
+    T = fit_similarity(data.x_mm[used], y[used], scale=spec.scale)
+    return {a: axis_scale_lever(T, data.x_mm[used], a, scale=spec.scale) for a in AXIS_ORDER}
+
+
+def _axis_candidates(data: RegistrationData, spec: RegistrationSpec) -> list[int]:
+    """The CT axes the ct-axis-scale effect may try: none with fewer than four references in
+    use (its F test would have two degrees of freedom, or none), else those along which the
+    references determine a stretch (a lever above a millionth of their spread)."""
+    used = [n for n in data.names if n not in spec.moved]
+    if spec.ct_axis is not None or len(used) < MIN_REFERENCES + 1:
+        return []
+    spread = float(np.sqrt(np.sum((data.y_mm - data.y_mm.mean(axis=0)) ** 2)))
+    return [a for a, lev in _axis_levers(data, spec).items() if lev > 1e-6 * spread]
+
+
+def _axis_choice(data: RegistrationData, spec: RegistrationSpec) -> int | None:
+    """The CT axis the ct-axis-scale effect would scale: the strongest outside evidence
+    (:func:`_axis_evidence`: the references' F test and the implanted markers), then the best
+    fit, then the first of :data:`AXIS_ORDER` (the slice axis)."""
+    try:
+        before = fit_registration(data, spec)
+    except ValueError:
+        return None
+    if float(np.sum(before.residuals ** 2)) <= rounding_rss(len(before.residuals), data.x_mm, data.y_mm):
+        return None         # the references fit to rounding: there is no misfit a stretch could explain
+    best, best_key = None, None
+    for j, a in enumerate(_axis_candidates(data, spec)):
+        try:
+            after = fit_registration(data, replace(spec, ct_axis=a))
+        except ValueError:
+            continue
+        ev = _axis_evidence(data, spec, before, after)
+        key = (ev["delta_bic"], -ev["rss_after_mm2"], -j)
+        if best_key is None or key > best_key:
+            best, best_key = a, key
+    return best
+
+
+def _axis_evidence(data: RegistrationData, spec: RegistrationSpec, before: RegistrationFit,
+                   after: RegistrationFit) -> dict:
+    """Outside evidence for ``ct-axis-scale`` (module docstring): the references' F test of the
+    added parameter, minus its cost and the choice of axis, plus the implanted-marker check
+    (``before``, ``after``: the fits of ``spec`` and of ``spec`` with the scale along the axis)."""
+    n_used = int(np.sum(after.used))
+    floor = rounding_rss(3 * n_used, data.x_mm, data.y_mm)
+    rss0 = max(float(np.sum(np.asarray(before.residuals) ** 2)), floor)
+    rss1 = max(float(np.sum(np.asarray(after.residuals) ** 2)), floor)
+    dof = 3 * n_used - n_params(after.spec.scale, True)
+    f = (rss0 - rss1) / max(rss1 / dof, np.finfo(float).tiny)
+    p = f_sf(max(f, 0.0), 1, dof)
+    k = max(len(_axis_candidates(data, spec)), 1)
+    chi2_equiv = chi2_isf(max(p, 1e-300), 1)
+    ev = {"delta_bic": float(chi2_equiv - np.log(3 * n_used) - 2 * np.log(k)),
+          "axis": CT_AXES[after.spec.ct_axis], "factor": float(after.transform.factor),
+          "f": float(f), "dof": [1, int(dof)], "p": float(p), "chi2_equivalent": float(chi2_equiv),
+          "n_axes": int(k), "rss_before_mm2": rss0, "rss_after_mm2": rss1,
+          "note": "the references' F test of the scale along the CT axis, as chi2_1 of equal tail probability, "
+                  "- ln 3N (the parameter) - 2 ln K (K CT axes tried: the one with the strongest evidence is taken)"}
+    return _with_check(ev, _check_evidence(data, before, after))
+
+
+#: Standard error of a CT axis's scale factor above which the references cannot show a
+#: slice-spacing error of 5 % (the size a wrong reconstruction interval or an uncorrected
+#: gantry tilt of 18 degrees gives) at three standard errors.
+AXIS_SCALE_SE_MAX = 0.05 / 3
+
+
+def axis_scale_identification(data: RegistrationData, spec: RegistrationSpec, fle_mm: float,
+                              axis: int = 2) -> dict:
+    """How well the references ``spec`` uses determine a scale along CT ``axis`` (default the
+    slice axis, z): their lever (:func:`~bsipipe.geometry.registration.axis_scale_lever`, mm)
+    and the standard error of the factor at the per-axis localisation error ``fle_mm / sqrt 3``;
+    ``identified`` when there are four references or more and that standard error is at most
+    :data:`AXIS_SCALE_SE_MAX`."""
+    used = [n for n in data.names if n not in spec.moved]
+    lever = _axis_levers(data, replace(spec, ct_axis=None))[axis]
+    se = float(fle_mm / np.sqrt(3.0) / lever) if lever > 0 and np.isfinite(fle_mm) else float("inf")
+    return {"axis": CT_AXES[axis], "n_references": len(used), "lever_mm": float(lever), "factor_se": se,
+            "identified": bool(len(used) >= MIN_REFERENCES + 1 and se <= AXIS_SCALE_SE_MAX),
+            "se_max": AXIS_SCALE_SE_MAX}
+
+
 def registration_effects(data: RegistrationData) -> list[Effect]:
     """The candidate effects, in the order the loop tries them."""
 
@@ -567,6 +691,15 @@ def registration_effects(data: RegistrationData) -> list[Effect]:
             return ev
         return _with_check(ev, _check_evidence(data, before.fit, after.fit))
 
+    def add_axis(spec: RegistrationSpec):
+        a = _axis_choice(data, spec)
+        return None if a is None else replace(spec, ct_axis=a)
+
+    def axis_evidence(before, after) -> dict | None:
+        if after.spec.ct_axis is None or before.spec.ct_axis is not None:
+            return None
+        return _axis_evidence(data, before.spec, before.fit, after.fit)
+
     return [
         Effect("scale",
                "magnification the C-arm calibration did not capture (source distance or pixel size off) "
@@ -589,12 +722,19 @@ def registration_effects(data: RegistrationData) -> list[Effect]:
                "one reference's residual far above the others' at the registration frame (its held-out "
                "prediction fails), or its motion relative to the other references over the trial",
                add_moved, ("displacement_<reference>_mm",), evidence=moved_evidence),
+        Effect("ct-axis-scale",
+               "the CT's lengths along one of its axes are off: a slice spacing (reconstruction interval) that "
+               "is not the header's slice thickness, or a tilted gantry's table increment taken for the spacing",
+               "the references' residuals grow with their spread along that CT axis; markers far from them "
+               "along it (implanted markers below a craniotomy on an axial CT) are off by (k - 1) times that "
+               "distance while the references fit well",
+               add_axis, ("ct_axis", "ct_axis_scale"), evidence=axis_evidence),
     ]
 
 
 def close_registration_loop(data: RegistrationData, spec0: RegistrationSpec, *, loop: bool = True,
                             noise_ceiling: float | None = None) -> LoopReport:
-    """Fit ``spec0`` and, with ``loop``, try ``scale``, ``label-swap`` and ``moving-reference``
+    """Fit ``spec0`` and, with ``loop``, try ``scale``, ``label-swap``, ``moving-reference`` and ``ct-axis-scale``
     (bsipipe.loop's rule; ``noise_ceiling``, mm per coordinate: :func:`bsipipe.loop.run_loop`'s)."""
     cands = registration_effects(data) if loop else []
 
