@@ -977,8 +977,10 @@ def _track_swept(frames, diameter_px, polarity, *, view, fps, roi, detection, se
                         dormant.append(i)
         buf.append([f, img, [p for p in found_xy]])
         if k == STACK_FRAMES - 1 and len(buf) >= STACK_FRAMES:
+            # the tracks' own markers are not measured again (their centres now, a lost one's gate)
             stacked = _stacked_spots([b[1] for b in buf[-STACK_FRAMES:]], diameter_px, polarity, where, detection,
-                                     dark)
+                                     dark, skip=(np.vstack([found_xy, lost_pred]),
+                                                 np.concatenate([np.full(len(found_xy), excl), lost_gate])))
         swept = k % every == 0 or whole is not None
         if swept:
             sweep(f, img, found_xy, lost, lost_pred, lost_gate, whole)
@@ -1006,13 +1008,14 @@ STACK_FRAMES = 8
 FAINT_MIN_SNR = 8.0
 
 
-def _stacked_spots(images: list, diameter_px: float, polarity, where, detection, dark) -> dict:
+def _stacked_spots(images: list, diameter_px: float, polarity, where, detection, dark, skip=None) -> dict:
     """The whole-frame detections (:func:`~bsipipe.imaging.detect.detect_arrays`) in the mean
     of ``images`` (the first :data:`STACK_FRAMES` frames): the pixel noise falls by the square
     root of their number, so a marker of single-frame SNR 2-4 (a 0.5 mm bead in a noisy C-arm
     frame, below the sweep's threshold) stands out there if it moves less than its size.  The
     sum of 8- or 12-bit frames is taken in 16-bit integers (exact, and the detector's integer
-    path: 16 ms a view where the float mean took 38), else the float mean."""
+    path: 16 ms a view where the float mean took 38), else the float mean.  ``skip``: as
+    :func:`~bsipipe.imaging.detect.detect_arrays`' (the tracks' markers, not measured again)."""
     ims = [np.asarray(im) for im in images]
     n = len(ims)
     if all(im.dtype == np.uint8 for im in ims) or (
@@ -1022,7 +1025,7 @@ def _stacked_spots(images: list, diameter_px: float, polarity, where, detection,
             np.add(acc, im, out=acc, casting="unsafe")
     else:
         acc = np.mean(np.stack([im.astype(np.float32) for im in ims]), axis=0)
-    return detect_arrays(acc, diameter_px, polarity, where, detection, dark=dark)
+    return detect_arrays(acc, diameter_px, polarity, where, detection, dark=dark, skip=skip)
 
 
 def _untracked_spots(d: dict, table: pd.DataFrame, diameter_px: float) -> list[dict]:
