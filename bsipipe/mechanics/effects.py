@@ -12,6 +12,9 @@ force model itself is in :mod:`bsipipe.mechanics.fit`); the names are the contra
 ``load-baseline-drift``      load-cell offset and linear drift in time (per log)
 ``machine-compliance``       the crosshead extension includes frame deflection ``C F`` (shared)
 ``model-order``              one more Ogden term (ogden -> ogden2 -> ogden3)
+``periodic-disturbance``     a sinusoid on the load reading (per log): mains pick-up aliased by
+                             the sampling, a pump's or fan's vibration; its frequency starts
+                             from the residual's periodogram
 ``no-slip-platens``          the specimen is bonded to the platens (axisymmetric FE force,
                              :mod:`bsipipe.mechanics.noslip`); offered only when the boundary is
                              not declared; evidence from a side-camera width series
@@ -36,8 +39,8 @@ import numpy as np
 
 from ..loop import Effect, LoopReport, SelectionRule, run_loop
 from .contact import force_noise
-from .fit import (FLAT_TOE, MIN_UNLOADED_SAMPLES, ForceModelSpec, LogData, contact_compression, fit_logs, fit_tables,
-                  parameter_names, predict_force, toe_params)
+from .fit import (FLAT_TOE, MIN_UNLOADED_SAMPLES, ForceModelSpec, LogData, contact_compression, disturbance_line_test,
+                  fit_logs, fit_tables, parameter_names, predict_force, toe_params)
 
 log = logging.getLogger(__name__)
 
@@ -115,6 +118,23 @@ SPECIMEN_SCATTER = Effect(
     lambda s: None if s.specimen_scatter else replace(s, specimen_scatter=True), ("stiffness_log_factor[i]",))
 
 
+PERIODIC_DISTURBANCE = Effect(
+    "periodic-disturbance",
+    "The load channel carries a periodic signal that is no force on the specimen: mains hum "
+    "picked up by the load cell's cable or amplifier (50 or 60 Hz and harmonics; sampled at "
+    "tens of Hz it shows at its alias, |f - k f_s|, 50.5 Hz at 50 Hz as a 0.5 Hz swing) or the "
+    "vibration of a pump, fan or the frame.  A sinusoid A sin(2 pi f (t - t0) + phi) added to "
+    "each log's model force, its frequency started from the residual's periodogram "
+    "(disturbance_frequencies) and refined with A and phi in the fit; f at least 1.5 cycles over "
+    "the log and at most its Nyquist frequency.",
+    "A narrow peak in the residual's periodogram (most of the misfit at one frequency, its "
+    "harmonics perhaps), a residual that swings about zero with a constant period through "
+    "approach, ramp and hold alike, unrelated to stretch or force; lag-1 autocorrelation high "
+    "for a slow (aliased) swing, runs alternating for a fast one.",
+    lambda s: None if s.periodic_disturbance else replace(s, periodic_disturbance=True),
+    ("disturbance_n", "disturbance_hz", "disturbance_phase_rad"))
+
+
 def no_slip_effect(evidence=None) -> Effect:
     """``no-slip-platens``, with outside evidence (e.g. :func:`width_evidence`) when there is any."""
     return Effect(
@@ -142,12 +162,18 @@ def mechanics_effects(*, boundary_declared: bool, width: "WidthSeries | None" = 
     between them).  In the force of one shape alone a homogeneous law with a larger mu
     mimics bonded platens, so the candidate would only be fitted, never decided (and a
     new shape costs minutes of FE to tabulate): declare ``--boundary`` instead.
+    ``periodic-disturbance`` is listed after the force's and the load cell's own effects (the
+    rarer mechanism); with its three parameters it must beat them by the tie margin, and
+    :func:`disturbance_veto` turns it down where its sinusoid is no line in the spectrum.
     """
     effects = [VISCOELASTIC, CONTACT_OFFSET, BASELINE_DRIFT, COMPLIANCE, MODEL_ORDER]
     if len(logs) > 1:
         # two specimens of 600 and 850 Pa fitted together: with nothing to take their difference
         # the loop had kept a drift, a compliance and 1 mm toes, mu 1397 Pa, alpha +13.8
         effects.append(SPECIMEN_SCATTER)
+    # 2 mN of 50.5 Hz hum on a 1 mm/s log sampled at 50 Hz (a 0.5 Hz swing): with nothing to
+    # take it the loop had kept a contact offset, a drift and a compliance, alpha +13.4 for -4.7
+    effects.append(PERIODIC_DISTURBANCE)
     unzeroed = [lg.name for lg in logs if not baseline_measurable(lg)]
     if unzeroed:
         # On a ramp at constant speed an offset and a drift in time are a force linear in the
@@ -276,7 +302,7 @@ def _nested(a: ForceModelSpec, b: ForceModelSpec) -> bool:
     law_ok = a.law == b.law or (la >= 0 and lb >= la)
     return (law_ok and a.prony <= b.prony and a.boundary in (b.boundary, "frictionless")
             and a.contact_offset <= b.contact_offset and a.baseline_drift <= b.baseline_drift
-            and a.compliance <= b.compliance)
+            and a.compliance <= b.compliance and a.periodic_disturbance <= b.periodic_disturbance)
 
 
 def _carry(values: Mapping, a: ForceModelSpec, b: ForceModelSpec) -> dict:
@@ -419,10 +445,11 @@ def force_noise_rms(logs: Sequence[LogData]) -> float | None:
 
 #: An effect's parameters that may not end on these edges of their ranges (name prefix ->
 #: edges): a toe as long as a tenth of the specimen, a relaxation of g = 0.98, a compliance
-#: whose deflection is half the specimen, a relaxation time at the record's bounds -- the
+#: whose deflection is half the specimen, a relaxation time at the record's bounds, a
+#: disturbance slower than 1.5 cycles over the log (a trend) or at its Nyquist frequency -- the
 #: mechanism asked for more than it can be, so it is standing in for something else.
 _EDGES_REFUSED = {r"contact_toe_mm": ("upper",), r"g\d+": ("upper",), r"compliance_mm_per_n": ("upper",),
-                  r"tau\d+_s": ("lower", "upper")}
+                  r"tau\d+_s": ("lower", "upper"), r"disturbance_hz": ("lower", "upper")}
 
 
 def _refused_edge(name: str, edge: str) -> bool:
@@ -471,6 +498,39 @@ def tared_contact_veto(logs: Sequence[LogData], after) -> str | None:
     return None
 
 
+#: Family-wise level of the line test of ``periodic-disturbance`` (:func:`disturbance_veto`).
+DISTURBANCE_LINE_P = 1e-3
+
+
+def disturbance_veto(logs: Sequence[LogData], before, after) -> str | None:
+    r"""``periodic-disturbance`` must be a line in the spectrum: each log's fitted sinusoid must
+    stand above the residual's periodogram around it by more than a chance peak of a smooth
+    spectrum does over the frequencies searched, family-wise p below :data:`DISTURBANCE_LINE_P`
+    (:func:`~bsipipe.mechanics.fit.disturbance_line_test`: 17-20 times the mean of its
+    neighbours on a 4 s log at 50 Hz).  The fit's delta BIC counts the frequency as one
+    parameter, but it was searched over hundreds of independent frequencies, and a serially
+    correlated residual has a peak somewhere: on AR(1) noise of rho 0.9 (``tests/test_fit_serial.py``)
+    one log of 8 had had a 0.032 Hz sinusoid of 0.77 mN kept (1.95 cycles, delta BIC 11.5 on
+    the effective samples), and on the real Bluehill 2 record (a 4-53 N specimen, its residual
+    of ogden+prony1 with compliance 0.17 N, red) a 0.045 Hz sinusoid of 0.17 N (2.7 cycles,
+    12.9); 2 mN of hum on 1 mN of noise stands 140-850 times above its neighbours.  The test is
+    per log, so a hum on one log of several fitted together is not named (the other logs'
+    sinusoids fit their noise)."""
+    if not getattr(after.spec, "periodic_disturbance", False) or getattr(before.spec, "periodic_disturbance", False):
+        return None
+    fit = after.fit
+    for i, lg in enumerate(logs):
+        v = fit.log_params(i)
+        test = disturbance_line_test(lg.time_s[fit.used[i]], fit.residuals[i], v["disturbance_n"], v["disturbance_hz"])
+        if not test["p"] < DISTURBANCE_LINE_P:
+            return (f"the sinusoid of log {i} ({v['disturbance_n']:.3g} N at {v['disturbance_hz']:.4g} Hz) stands "
+                    f"{test['ratio']:.1f} times above the mean of the {test['n_neighbours']} periodogram ordinates "
+                    f"around it: as a chance peak of a smooth spectrum over the {test['n_frequencies']:.0f} frequencies "
+                    f"searched, p = {test['p']:.2g} (not below {DISTURBANCE_LINE_P:g}): a broad misfit or red noise, "
+                    "not a periodic disturbance")
+    return None
+
+
 def close_loop_logs(logs: Sequence[LogData], spec0: ForceModelSpec, *, boundary_declared: bool = True,
                     width: WidthSeries | None = None, max_strain: float | None = None,
                     rule: SelectionRule = SelectionRule(), candidates: Sequence[Effect] | None = None,
@@ -502,7 +562,8 @@ def close_loop_logs(logs: Sequence[LogData], spec0: ForceModelSpec, *, boundary_
                     heldout=fitter.heldout_rmse if len(fitter.logs) > 1 else None,
                     covariates=lambda res: log_covariates(fitter.logs, res.used),
                     describe=lambda s: s.describe(), unit="n", rule=rule, noise_rms=force_noise_rms(fitter.logs),
-                    veto=lambda before, after: effect_veto(before, after) or tared_contact_veto(fitter.logs, after))
+                    veto=lambda before, after: (effect_veto(before, after) or tared_contact_veto(fitter.logs, after)
+                                                or disturbance_veto(fitter.logs, before, after)))
 
 
 # --- the loop on stress-stretch tables ---------------------------------------------------------

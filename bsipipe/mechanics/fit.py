@@ -12,7 +12,7 @@ sample), detected contact :math:`d_c`, height :math:`H` and diameter :math:`D`:
     \lambda &= 1 - \delta / H \\
     F_e &= -P(\lambda)\, \pi D^2 / 4                         &\text{(elastic force, N; mm}^2 \to \text{m}^2) \\
     F_t &= \mathrm{QLV}[F_e](t)                             &\text{(Prony terms, when any)} \\
-    F &= F_t + b_0 + b_1 (t - t_0)
+    F &= F_t + b_0 + b_1 (t - t_0) + A \sin(2 \pi f (t - t_0) + \varphi)
 
 :math:`P` is the law's homogeneous uniaxial nominal stress (Pa, negative in compression), or
 the bonded-platen FE force per area of :mod:`bsipipe.mechanics.noslip` for
@@ -24,8 +24,12 @@ its own compression (:math:`s = 0`) and the whole travel (:math:`s = 1`).  The e
 :math:`\Delta_c` = ``contact_offset_mm``, :math:`c` = ``contact_toe_mm``, :math:`p` =
 ``contact_toe_exponent``, :math:`s` = ``contact_toe_spread``, per log), the load-cell baseline and drift :math:`b_0, b_1`
 (``baseline_n``, ``drift_n_per_s``, per log) and the machine compliance :math:`C`
-(``compliance_mm_per_n``, shared: one frame).  Compliance makes the model implicit in
-:math:`F_t`; it is solved by Newton's method per sample (exact without Prony terms; with them
+(``compliance_mm_per_n``, shared: one frame) and a periodic disturbance of the load reading
+(``periodic_disturbance``: :math:`A` = ``disturbance_n``, :math:`f` = ``disturbance_hz``, the
+frequency the log shows, aliased by its sampling where the source is faster,
+:math:`\varphi` = ``disturbance_phase_rad`` at the first sample, per log; its frequency starts
+from the periodogram of the residual, :func:`disturbance_frequencies`).  Compliance makes the
+model implicit in :math:`F_t`; it is solved by Newton's method per sample (exact without Prony terms; with them
 the instantaneous derivative, :math:`G(0) = 1`, preconditions a fixed-point iteration over
 the whole history).
 
@@ -279,6 +283,7 @@ class ForceModelSpec:
     compliance: bool = False
     refine_contact: bool = True
     specimen_scatter: bool = False
+    periodic_disturbance: bool = False
 
     def __post_init__(self):
         get_law(self.law)
@@ -294,7 +299,8 @@ class ForceModelSpec:
         s = self.law + (f"+prony{self.prony}" if self.prony else "")
         extra = [self.boundary] if self.boundary != "frictionless" else []
         extra += [n for n, on in (("contact-offset", self.contact_offset), ("load-baseline-drift", self.baseline_drift),
-                                  ("machine-compliance", self.compliance), ("specimen-scatter", self.specimen_scatter))
+                                  ("machine-compliance", self.compliance), ("specimen-scatter", self.specimen_scatter),
+                                  ("periodic-disturbance", self.periodic_disturbance))
                   if on]
         return s + (f" ({', '.join(extra)})" if extra else "")
 
@@ -448,7 +454,154 @@ def parameter_names(spec: ForceModelSpec, logs: "int | Sequence[LogData]" = 1) -
         names.append("compliance_mm_per_n")
     if spec.specimen_scatter and n_logs > 1:
         names += [f"{SCATTER_NAME}[{i}]" for i in range(n_logs - 1)]
+    if spec.periodic_disturbance:
+        names += [f"{k}{sfx(i)}" for i in range(n_logs) for k in DISTURBANCE_NAMES]
     return names
+
+
+#: ``periodic-disturbance``'s parameters per log: amplitude (N), frequency as the log shows it
+#: (Hz, aliased by the sampling where the source is faster) and phase at the first sample (rad).
+DISTURBANCE_NAMES = ("disturbance_n", "disturbance_hz", "disturbance_phase_rad")
+#: The fewest cycles a periodic disturbance completes over a log's fitted samples: slower, a
+#: sinusoid is a trend (a drift, a relaxation, a stiffer law) and not told from one.
+DISTURBANCE_MIN_CYCLES = 1.5
+#: Frequencies of the residual's periodogram each fit of a periodic disturbance starts from.
+DISTURBANCE_PEAKS = 3
+
+
+def disturbance_band(time_s: np.ndarray) -> tuple[float, float]:
+    """The frequencies (Hz) a periodic disturbance of samples at ``time_s`` may have: at least
+    :data:`DISTURBANCE_MIN_CYCLES` over their span, at most the Nyquist frequency of their median
+    spacing (a faster source shows at its alias below it).
+
+    >>> [round(f, 4) for f in disturbance_band(np.arange(0.0, 10.0, 0.02))]
+    [0.1503, 25.0]
+    """
+    t = np.asarray(time_s, dtype=float)
+    span = float(t[-1] - t[0]) if len(t) > 1 else 0.0
+    dt = np.diff(t)
+    dt = dt[dt > 0]
+    if span <= 0 or not len(dt):
+        return 1.0, 2.0
+    lo, hi = DISTURBANCE_MIN_CYCLES / span, 0.5 / float(np.median(dt))
+    return float(lo), float(max(hi, 1.01 * lo))
+
+
+def disturbance_frequencies(time_s, residual, band: tuple[float, float] | None = None,
+                            n_peaks: int = DISTURBANCE_PEAKS, oversample: int = 8) -> list[float]:
+    r"""The frequencies (Hz) of the largest narrow peaks of a residual's periodogram, largest first.
+
+    The residual (its least-squares line taken out, so a trend does not leak into the band) is
+    interpolated onto a uniform grid of its median spacing and its power :math:`|\mathrm{FFT}|^2`
+    computed on a grid ``oversample`` times finer than :math:`1/T` (zero padding); the highest
+    local maximum inside ``band`` (default :func:`disturbance_band`) is taken, its sinusoid
+    (least squares at that frequency) taken out, and the next peak sought in what is left, so the
+    sidelobes of a strong peak are not returned as peaks of their own.  A sinusoid of
+    frequency :math:`f` is found within a fraction of :math:`1/T`; the fit refines it.
+
+    >>> t = np.arange(0.0, 8.0, 0.02)
+    >>> r = 2e-3 * np.sin(2 * np.pi * 0.5 * t + 1.0) + 1e-4 * np.cos(2 * np.pi * 7.0 * t)
+    >>> [round(f, 1) for f in disturbance_frequencies(t, r, n_peaks=2)]
+    [0.5, 7.0]
+    """
+    t = np.asarray(time_s, dtype=float)
+    if len(t) < 8:
+        return []
+    lo, hi = band if band is not None else disturbance_band(t)
+    tu, eu, dt = _uniform(t, residual)
+    n_fft = int(2 ** np.ceil(np.log2(oversample * len(tu))))
+    freq = np.fft.rfftfreq(n_fft, dt)
+    inside = (freq >= lo) & (freq <= hi)
+    cols = [np.ones_like(tu), tu]
+    out: list[float] = []
+    for _ in range(n_peaks):
+        a = np.column_stack(cols)
+        left = eu - a @ np.linalg.lstsq(a, eu, rcond=None)[0]
+        power = np.abs(np.fft.rfft(left, n_fft)) ** 2
+        k = np.flatnonzero((power[1:-1] >= power[:-2]) & (power[1:-1] > power[2:])) + 1
+        k = k[inside[k]]
+        if not len(k):
+            break
+        f = float(freq[k[np.argmax(power[k])]])
+        out.append(f)
+        cols += [np.sin(2 * np.pi * f * tu), np.cos(2 * np.pi * f * tu)]
+    return out
+
+
+def _uniform(time_s, values) -> tuple[np.ndarray, np.ndarray, float]:
+    """``values`` at ``time_s`` interpolated onto a uniform grid of their median spacing from
+    the first sample (times from 0), and that spacing."""
+    t = np.asarray(time_s, dtype=float)
+    dt = np.diff(t)
+    dt = float(np.median(dt[dt > 0])) if np.any(dt > 0) else 1.0
+    tu = np.arange(t[0], t[-1] + 0.5 * dt, dt) - t[0]
+    return tu, np.interp(tu, t - t[0], np.asarray(values, dtype=float)), dt
+
+
+#: Ordinates of the periodogram on either side of a disturbance's frequency (spaced 1/T) over
+#: which :func:`disturbance_line_test` measures the continuum.
+DISTURBANCE_CONTINUUM_BINS = 10
+
+
+def disturbance_line_test(time_s, residual, amplitude_n: float, hz: float,
+                          band: tuple[float, float] | None = None, bins: int = DISTURBANCE_CONTINUUM_BINS) -> dict:
+    r"""Is a fitted sinusoid a line in the spectrum, or a piece of a broad misfit or of red noise?
+
+    The sinusoid's power in the periodogram, :math:`n A^2 / 4`, over the mean of the :math:`k`
+    ordinates of the residual left beside it (``residual``: the fit's with the sinusoid, its line
+    taken out) at the independent frequencies :math:`f_j = j/T` within ``bins`` of :math:`f` but
+    outside its main lobe (:math:`1.5 \le |f_j - f|\,T \le` ``bins``).  Where the spectrum is
+    smooth over that window (any colour: white noise, red noise, a slow misfit) each ordinate
+    is its level times an exponential variable, so the ratio :math:`R` of a chance peak is
+    :math:`F(2, 2k)`, :math:`P(R > x) = (1 + x/k)^{-k}`; searched over the :math:`M` independent
+    frequencies of ``band`` (default :func:`disturbance_band`; :math:`M` its width times
+    :math:`T`), its family-wise p-value is :math:`\min(1, M (1 + R/k)^{-k})` (Fisher's test of a
+    periodogram peak against a local continuum).  On white noise a sinusoid that passes delta
+    BIC 10 stands about 13-17 times above it; one cut from a red residual stands little above
+    its neighbours.  Returns ``ratio``, ``n_neighbours``, ``n_frequencies`` and ``p`` (1 with
+    fewer than 4 neighbours: nothing to compare).
+
+    >>> rng = np.random.default_rng(0)
+    >>> t = np.arange(0.0, 60.0, 0.1)
+    >>> noise = rng.normal(0.0, 1e-3, t.size)        # 1 mN against 1 mN of noise: n / 4 = 150
+    >>> test = disturbance_line_test(t, noise, 1e-3, 0.5)
+    >>> 75 < test["ratio"] < 300, test["n_neighbours"], test["p"] < 1e-9
+    (True, 17, True)
+    """
+    tu, eu, dt = _uniform(time_s, residual)
+    n = len(tu)
+    span = n * dt
+    lo, hi = band if band is not None else disturbance_band(np.asarray(time_s, dtype=float))
+    m_freq = max((hi - lo) * span, 1.0)
+    out = {"ratio": float("nan"), "n_neighbours": 0, "n_frequencies": float(m_freq), "p": 1.0}
+    if n < 8:
+        return out
+    a = np.column_stack([np.ones_like(tu), tu])
+    eu = eu - a @ np.linalg.lstsq(a, eu, rcond=None)[0]
+    power = np.abs(np.fft.rfft(eu)) ** 2 / n
+    freq = np.fft.rfftfreq(n, dt)
+    gap = np.abs(freq - hz) * span
+    near = (gap >= 1.5) & (gap <= bins) & (freq > 0) & (freq < 0.5 / dt)
+    k = int(near.sum())
+    out["n_neighbours"] = k
+    if k < 4:
+        return out
+    ratio = n * amplitude_n ** 2 / 4.0 / max(float(np.mean(power[near])), np.finfo(float).tiny)
+    out.update(ratio=float(ratio), p=float(min(1.0, m_freq * (1.0 + ratio / k) ** (-k))))
+    return out
+
+
+def _sinusoid_of(t, y, hz: float) -> tuple[float, float]:
+    r"""Amplitude and phase of the least-squares :math:`A \sin(2 \pi f t + \varphi)` (with a constant) in ``y(t)``.
+
+    >>> t = np.linspace(0.0, 4.0, 201)
+    >>> [round(x, 3) for x in _sinusoid_of(t, 0.5 + 2.0 * np.sin(2 * np.pi * 0.7 * t - 1.0), 0.7)]
+    [2.0, -1.0]
+    """
+    arg = 2.0 * np.pi * hz * np.asarray(t, dtype=float)
+    a = np.column_stack([np.sin(arg), np.cos(arg), np.ones_like(arg)])
+    c = np.linalg.lstsq(a, np.asarray(y, dtype=float), rcond=None)[0]
+    return float(np.hypot(c[0], c[1])), float(np.arctan2(c[1], c[0]))
 
 
 #: ``specimen-scatter``: log ``i``'s moduli are the law's times ``exp(z_i)``; ``z_i`` is fitted
@@ -614,7 +767,7 @@ def _tissue_force(time_s, x_mm, height_mm, area_m2, stress, g, tau, compliance, 
 
 
 def _log_force(log_: LogData, spec: ForceModelSpec, law: Law, tissue, g, tau, offset, compliance, b0, b1,
-               toe=FLAT_TOE, tare: float = 0.0, *, terms: PronyTerms | None = None):
+               toe=FLAT_TOE, tare: float = 0.0, disturbance=None, *, terms: PronyTerms | None = None):
     stress = _stress_function(spec, law, tissue, log_.aspect)
     x = log_.displacement_mm - log_.contact_mm - offset
     f = _tissue_force(log_.time_s, x, log_.height_mm, log_.area_m2, stress, g, tau, compliance, toe, terms=terms)
@@ -625,6 +778,10 @@ def _log_force(log_: LogData, spec: ForceModelSpec, law: Law, tissue, g, tau, of
         f = f - f[0] - tare
     if b0 or b1:
         f = f + b0 + b1 * (log_.time_s - log_.time_s[0])
+    if disturbance is not None:
+        # in the load reading, not the specimen: mains pick-up or a vibration the cell senses
+        amp, hz, phase = disturbance
+        f = f + amp * np.sin(2.0 * np.pi * hz * (log_.time_s - log_.time_s[0]) + phase)
     return f
 
 
@@ -635,9 +792,10 @@ def predict_force(log: LogData, spec: ForceModelSpec, params: Mapping) -> np.nda
     ``g1``/``tau1_s``) and the effects' parameters under their plain names
     (``contact_offset_mm``, ``contact_toe_mm``, ``contact_toe_exponent``, ``contact_toe_spread``,
     ``baseline_n``, ``drift_n_per_s``,
-    ``compliance_mm_per_n``; :meth:`FitResult.log_params` gives them for one log of a joint
-    fit).  Effects the spec does not switch on are ignored; the contact shift applies where
-    the fit refines it (``contact_offset``, or a detected contact with ``refine_contact``).
+    ``compliance_mm_per_n``, ``disturbance_n``, ``disturbance_hz``, ``disturbance_phase_rad``;
+    :meth:`FitResult.log_params` gives them for one log of a joint fit).  Effects the spec does
+    not switch on are ignored; the contact shift applies where the fit refines it
+    (``contact_offset``, or a detected contact with ``refine_contact``).
     """
     p = _flat_prony(params)
     law = get_law(spec.law)
@@ -652,7 +810,8 @@ def predict_force(log: LogData, spec: ForceModelSpec, params: Mapping) -> np.nda
     if spec.specimen_scatter:
         tissue = _scaled_tissue(law, tissue, float(np.exp(p.get(SCATTER_NAME, 0.0))))
     tare = float(p.get("tare_n", 0.0)) if _tared(log) else 0.0
-    return _log_force(log, spec, law, tissue, g, tau, offset, c, b0, b1, toe, tare)
+    dist = tuple(float(p.get(k, 0.0)) for k in DISTURBANCE_NAMES) if spec.periodic_disturbance else None
+    return _log_force(log, spec, law, tissue, g, tau, offset, c, b0, b1, toe, tare, dist)
 
 
 # --- problems: a residual function over an internal parameter vector ---------------------
@@ -685,9 +844,14 @@ class _Problem:
         return lo, hi
 
     def canonical(self, theta) -> np.ndarray:
-        """The same model with its Ogden terms ordered by decreasing modulus (mu1 the largest)."""
+        """The same model with its Ogden terms ordered by decreasing modulus (mu1 the largest) and
+        each periodic disturbance's phase in [-pi, pi)."""
         names = self.law.param_names
         n = self.law.n_terms
+        phases = [j for j, k in enumerate(getattr(self, "names", ())) if k.startswith("disturbance_phase_rad")]
+        if phases:
+            theta = np.array(theta, dtype=float)
+            theta[phases] = np.mod(theta[phases] + np.pi, 2.0 * np.pi) - np.pi
         if self.law.name not in ("ogden2", "ogden3"):
             return theta
         idx = [self.names.index(k) for k in names]
@@ -808,6 +972,13 @@ class _LogProblem(_Problem):
         if spec.specimen_scatter and n > 1:
             # specimens a factor of 5 stiffer or softer than the geometric mean at most
             pars += [_Par(f"{SCATTER_NAME}[{i}]", -np.log(5.0), np.log(5.0), 0.05) for i in range(n - 1)]
+        self.disturbance_bands = [disturbance_band(lg.time_s[m]) for lg, m in zip(logs, self.used)]
+        if spec.periodic_disturbance:
+            fs = max(1e-3 * fmax, 1e-6)
+            for i, (lo, hi) in enumerate(self.disturbance_bands):
+                pars += [_Par(f"disturbance_n{sfx(i)}", 0.0, np.inf, fs),
+                         _Par(f"disturbance_hz{sfx(i)}", lo, hi, 0.1 * lo / DISTURBANCE_MIN_CYCLES),
+                         _Par(f"disturbance_phase_rad{sfx(i)}", -np.inf, np.inf, 0.3)]
         self.pars = pars
         self.names = [p.name for p in pars]
         if self.names != parameter_names(spec, logs):    # the layout and the public names must agree
@@ -828,7 +999,8 @@ class _LogProblem(_Problem):
         if spec.specimen_scatter and len(self.logs) > 1:
             tissue = _scaled_tissue(self.law, tissue, float(scatter_factors(values, len(self.logs))[i]))
         tare = values[f"tare_n{sfx}"] if _tared(self.logs[i]) else 0.0
-        return tissue, g, tau, off, c, b0, b1, toe, tare
+        dist = tuple(values[k + sfx] for k in DISTURBANCE_NAMES) if spec.periodic_disturbance else None
+        return tissue, g, tau, off, c, b0, b1, toe, tare, dist
 
     def predict(self, values: Mapping) -> list[np.ndarray]:
         return [_log_force(lg, self.spec, self.law, *self._split(values, i), terms=c)
@@ -865,19 +1037,31 @@ class _LogProblem(_Problem):
             cols.append(w * f[m])
         return np.concatenate(cols)
 
-    def _nuisance_columns(self) -> np.ndarray:
-        """Weighted baseline and drift columns (per log), when the spec has them."""
-        if not self.spec.baseline_drift:
-            return np.zeros((self.n_obs, 0))
+    def _nuisance_columns(self, disturbance_hz: Sequence[float] | None = None) -> np.ndarray:
+        """Weighted baseline and drift columns (per log), when the spec has them; then, given
+        each log's disturbance frequency, its sine and cosine columns (per log)."""
         n = len(self.logs)
-        out = np.zeros((self.n_obs, 2 * n))
-        row = 0
-        for i, (w, lg, m) in enumerate(zip(self.weights, self.logs, self.used)):
-            k = int(m.sum())
-            out[row:row + k, 2 * i] = w
-            out[row:row + k, 2 * i + 1] = w * (lg.time_s[m] - lg.time_s[0])
-            row += k
-        return out
+        blocks = []
+        if self.spec.baseline_drift:
+            out = np.zeros((self.n_obs, 2 * n))
+            row = 0
+            for i, (w, lg, m) in enumerate(zip(self.weights, self.logs, self.used)):
+                k = int(m.sum())
+                out[row:row + k, 2 * i] = w
+                out[row:row + k, 2 * i + 1] = w * (lg.time_s[m] - lg.time_s[0])
+                row += k
+            blocks.append(out)
+        if disturbance_hz is not None:
+            out = np.zeros((self.n_obs, 2 * n))
+            row = 0
+            for i, (w, lg, m, hz) in enumerate(zip(self.weights, self.logs, self.used, disturbance_hz)):
+                k = int(m.sum())
+                arg = 2.0 * np.pi * hz * (lg.time_s[m] - lg.time_s[0])
+                out[row:row + k, 2 * i] = w * np.sin(arg)
+                out[row:row + k, 2 * i + 1] = w * np.cos(arg)
+                row += k
+            blocks.append(out)
+        return np.column_stack(blocks) if blocks else np.zeros((self.n_obs, 0))
 
     def default_values(self) -> dict:
         v = {}
@@ -902,12 +1086,50 @@ class _LogProblem(_Problem):
                 v[p.name] = 1e-3 * p.hi
             elif p.name.startswith(SCATTER_NAME):
                 v[p.name] = 0.0
+            elif p.name.startswith(("disturbance_n", "disturbance_phase_rad")):
+                v[p.name] = 0.0
+            elif p.name.startswith("disturbance_hz"):
+                v[p.name] = float(np.sqrt(p.lo * p.hi))
         return v
 
-    def global_starts(self, n_keep: int = 4) -> list[dict]:
+    def global_starts(self, n_keep: int = 4, disturbance_peaks: Sequence[Sequence[float]] | None = None) -> list[dict]:
+        """Starts of the local fits from the global stage (module docstring).
+
+        With a periodic disturbance, each log's candidate frequencies are ``disturbance_peaks``
+        (from the residual of the model before the disturbance: :func:`fit_logs`), else those
+        of the periodogram (:func:`disturbance_frequencies`) of the stage's own best residual
+        without the disturbance; the stage is run at each (the k-th of every log), with the
+        disturbance's sine and cosine as linear columns: the starts of the best frequency, then
+        the best start of each other one."""
+        if not self.spec.periodic_disturbance:
+            return self._grid_starts(n_keep)[0]
+        peaks = disturbance_peaks
+        if peaks is None:
+            _, _, resid = self._grid_starts(1)
+            peaks = self.disturbance_peaks(resid)
+        if not any(peaks):
+            return self._grid_starts(n_keep)[0]
+        runs = []
+        for k in range(max(len(p) for p in peaks)):
+            hz = [p[min(k, len(p) - 1)] if p else float(np.sqrt(lo * hi))
+                  for p, (lo, hi) in zip(peaks, self.disturbance_bands)]
+            starts, sse, _ = self._grid_starts(n_keep, hz)
+            runs.append((sse, starts))
+        runs.sort(key=lambda r: r[0])
+        return list(runs[0][1]) + [r[1][0] for r in runs[1:]]
+
+    def disturbance_peaks(self, residuals: Sequence[np.ndarray]) -> list[list[float]]:
+        """Each log's candidate disturbance frequencies: its fitted residual's periodogram peaks."""
+        return [disturbance_frequencies(lg.time_s[m], r, band)
+                for lg, m, r, band in zip(self.logs, self.used, residuals, self.disturbance_bands)]
+
+    def _grid_starts(self, n_keep: int, disturbance_hz: Sequence[float] | None = None):
+        """The global stage: ``(starts, the best grid point's weighted sum of squares, its
+        unweighted residual per log)``; with ``disturbance_hz`` (one frequency per log) the
+        disturbance's sine and cosine are linear columns at those frequencies."""
         defaults = self.default_values()
         y = np.concatenate([w * d for w, d in zip(self.weights, self.data)])
-        nuis = self._nuisance_columns()
+        nuis = self._nuisance_columns(disturbance_hz)
         law = self.law
         if law.name in ("neo-hookean", "mooney-rivlin"):
             a_set = [2.0] if law.name == "neo-hookean" else [2.0, -2.0]
@@ -918,8 +1140,8 @@ class _LogProblem(_Problem):
                 v["mu_pa"] = max(coef[0], 1e-6 * self.mu_scale)
             else:
                 v["c10_pa"], v["c01_pa"] = (max(c / 2.0, 1e-6 * self.mu_scale) for c in coef)
-            _put_nuisance(self, v, nu)
-            return [v]
+            _put_nuisance(self, v, nu, disturbance_hz)
+            return [v], sse, self._grid_residual(y, cols, coef, nuis, nu)
         nterm = law.n_terms
         grid = _ALPHA_GRID_1 if nterm == 1 else _ALPHA_GRID_N
         grid = grid[(grid >= self.alpha_abs_bounds[0]) & (grid <= self.alpha_abs_bounds[1])]
@@ -959,13 +1181,21 @@ class _LogProblem(_Problem):
                     v["mu_pa"], v["alpha"] = mu, float(a)
                 else:
                     v[f"mu{j}_pa"], v[f"alpha{j}"] = mu, float(a)
-            _put_nuisance(self, v, nu)
+            _put_nuisance(self, v, nu, disturbance_hz)
             if self.spec.boundary == "no-slip":
-                v = self._rescale_noslip(v, y, nuis)
+                v = self._rescale_noslip(v, y, nuis, disturbance_hz)
             starts.append(v)
-        return starts
+        sse, combo, coef, nu = scored[0]
+        best = self._grid_residual(y, np.column_stack([basis[a] for a in combo]), coef, nuis, nu)
+        return starts, sse, best
 
-    def _rescale_noslip(self, v: dict, y, nuis) -> dict:
+    def _grid_residual(self, y, cols, coef, nuis, nu) -> list[np.ndarray]:
+        """A global-stage point's residual (data minus model, N) per log, unweighted."""
+        r = y - cols @ coef - (nuis @ nu if nuis.shape[1] else 0.0)
+        ends = np.cumsum([int(m.sum()) for m in self.used])
+        return [r[a:b] / w for a, b, w in zip(np.r_[0, ends[:-1]], ends, self.weights)]
+
+    def _rescale_noslip(self, v: dict, y, nuis, disturbance_hz=None) -> dict:
         """The global stage ran the homogeneous formula; rescale mu with the no-slip force."""
         cols = []
         tissue = np.array([1.0, v["alpha"]])
@@ -977,18 +1207,28 @@ class _LogProblem(_Problem):
         coef, _, nu = _bounded_linear(np.concatenate(cols)[:, None], nuis, y)
         v = dict(v)
         v["mu_pa"] = max(float(coef[0]), 1e-4 * self.mu_scale)
-        _put_nuisance(self, v, nu)
+        _put_nuisance(self, v, nu, disturbance_hz)
         return v
 
 
-def _put_nuisance(problem: "_LogProblem", v: dict, nu: np.ndarray) -> None:
-    if not problem.spec.baseline_drift:
-        return
+def _put_nuisance(problem: "_LogProblem", v: dict, nu: np.ndarray, disturbance_hz=None) -> None:
+    r"""The global stage's linear nuisance coefficients (:meth:`_LogProblem._nuisance_columns`)
+    as parameters: baseline and drift; a disturbance's sine and cosine as amplitude and phase,
+    :math:`a \sin x + b \cos x = A \sin(x + \varphi)`."""
     n = len(problem.logs)
     sfx = (lambda i: f"[{i}]") if n > 1 else (lambda i: "")
-    for i in range(n):
-        v[f"baseline_n{sfx(i)}"] = float(nu[2 * i])
-        v[f"drift_n_per_s{sfx(i)}"] = float(nu[2 * i + 1])
+    j = 0
+    if problem.spec.baseline_drift:
+        for i in range(n):
+            v[f"baseline_n{sfx(i)}"] = float(nu[2 * i])
+            v[f"drift_n_per_s{sfx(i)}"] = float(nu[2 * i + 1])
+        j = 2 * n
+    if problem.spec.periodic_disturbance and disturbance_hz is not None:
+        for i, hz in enumerate(disturbance_hz):
+            a, b = float(nu[j + 2 * i]), float(nu[j + 2 * i + 1])
+            v[f"disturbance_n{sfx(i)}"] = float(np.hypot(a, b))
+            v[f"disturbance_hz{sfx(i)}"] = float(hz)
+            v[f"disturbance_phase_rad{sfx(i)}"] = float(np.arctan2(b, a))
 
 
 def _bounded_linear(cols: np.ndarray, nuis: np.ndarray, y: np.ndarray):
@@ -1503,11 +1743,37 @@ def fit_logs(logs: Sequence[LogData], spec: ForceModelSpec = ForceModelSpec(), *
     problem = _LogProblem(logs, spec, max_strain, sample_mask)
     if problem.n_obs <= len(problem.pars):
         raise ValueError(f"{problem.n_obs} samples to fit but the model has {len(problem.pars)} parameters")
-    starts = problem.global_starts()
+    peaks = before = None
+    if spec.periodic_disturbance and start is not None and not any(k.startswith("disturbance_hz") for k in start):
+        # the disturbance is being added to the model ``start`` fitted: the periodogram of that
+        # model's residual says where it is (the global stage's coarse law leaves its own misfit
+        # there, at the frequencies of the record's shape: 0.8-1.2 Hz on a 4 s ramp for a 0.5 Hz hum)
+        before = {**problem.default_values(), **{k: v for k, v in _flat_prony(start).items() if k in problem.names}}
+        if set(problem.names) <= set(before):
+            peaks = problem.disturbance_peaks(problem.raw_residuals(before))
+        else:
+            before = None
+    starts = problem.global_starts(disturbance_peaks=peaks)
     if start is not None:
         extra = dict(starts[0])
         extra.update({k: v for k, v in _flat_prony(start).items() if k in problem.names})
-        starts = [extra] + starts
+        if before is not None and any(peaks):
+            # ``start`` and, at each of its residual's peaks, the sinusoid that residual has there
+            resid = problem.raw_residuals(before)
+            sfx = (lambda i: f"[{i}]") if len(logs) > 1 else (lambda i: "")
+            ahead = []
+            for k in range(max(len(p) for p in peaks)):
+                v = dict(extra)
+                for i, (lg, m, r, p) in enumerate(zip(problem.logs, problem.used, resid, peaks)):
+                    if p:
+                        hz = p[min(k, len(p) - 1)]
+                        amp, phase = _sinusoid_of(lg.time_s[m] - lg.time_s[0], -r, hz)
+                        v.update({f"disturbance_n{sfx(i)}": amp, f"disturbance_hz{sfx(i)}": hz,
+                                  f"disturbance_phase_rad{sfx(i)}": phase})
+                ahead.append(v)
+            starts = ahead + starts
+        else:
+            starts = [extra] + starts
     if spec.prony:
         # A second set of relaxation-time starts, a decade apart from the first.
         alt = []

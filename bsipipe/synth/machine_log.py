@@ -19,6 +19,9 @@ and recorded in the returned truth:
 - **machine-compliance**: the frame deflects ``compliance_mm_per_n`` times the load, so the
   platen lags the recorded crosshead extension: :math:`\delta = \delta(e - C F)`, solved by
   fixed-point iteration (an independent route from the fit's Newton solve);
+- **periodic-disturbance**: a sinusoid on the load reading, ``disturbance_n`` amplitude at
+  ``disturbance_hz`` (the source's frequency: mains hum at 50.5 Hz recorded at 50 Hz shows as
+  a 0.5 Hz swing, the sampling aliases it) and phase ``disturbance_phase_rad`` at time 0;
 - load noise: independent Gaussian, ``noise_n`` standard deviation.
 
 The simulation runs on a time grid ``oversample`` times finer than the recorded one (the
@@ -126,7 +129,9 @@ def synth_compression_log(*, mu_pa: float = 720.0, alpha: float = -4.7,
                           protocol: str = "ramp", hold_s: float = 60.0,
                           noise_n: float = 1e-3, rate_hz: float = 10.0, n_points: int | None = None,
                           contact_offset_mm: float = 0.0, baseline_n: float = 0.0, drift_n_per_s: float = 0.0,
-                          compliance_mm_per_n: float = 0.0, boundary: str = "frictionless",
+                          compliance_mm_per_n: float = 0.0, disturbance_n: float = 0.0,
+                          disturbance_hz: float = 50.5, disturbance_phase_rad: float = 0.0,
+                          boundary: str = "frictionless",
                           noslip_mesh_radial: int | None = NOSLIP_MESH_RADIAL,
                           oversample: int = 10, seed: int = 0) -> tuple[pd.DataFrame, dict]:
     """Simulate a Micro Tester cylinder-compression log.
@@ -156,8 +161,11 @@ def synth_compression_log(*, mu_pa: float = 720.0, alpha: float = -4.7,
         Load-cell noise standard deviation, N (default 1 mN).
     rate_hz, n_points : float, int
         Recording rate (default 10 Hz), or a fixed number of evenly spaced samples.
-    contact_offset_mm, baseline_n, drift_n_per_s, compliance_mm_per_n : float
+    contact_offset_mm, baseline_n, drift_n_per_s, compliance_mm_per_n, disturbance_n : float
         Effects (module docstring); 0 switches each off.
+    disturbance_hz, disturbance_phase_rad : float
+        The periodic disturbance's frequency at its source (sampled at the recording's times,
+        so aliased where it is above the Nyquist frequency) and its phase at time 0.
     boundary : {"frictionless", "no-slip"}
     noslip_mesh_radial : int or None
         For ``no-slip``: radial cells of the generator's own FE run
@@ -237,6 +245,8 @@ def synth_compression_log(*, mu_pa: float = 720.0, alpha: float = -4.7,
     f_rec = np.interp(t_rec, fine, f)
     rng = np.random.default_rng(seed)
     load = f_rec + baseline_n + drift_n_per_s * t_rec + rng.normal(0.0, noise_n, len(t_rec))
+    if disturbance_n:
+        load = load + disturbance_n * np.sin(2.0 * np.pi * disturbance_hz * t_rec + disturbance_phase_rad)
     extension = np.interp(t_rec, knots_t, knots_e)
     segment = np.searchsorted(knots_t[1:-1], t_rec, side="right") + 1
     segment = np.asarray(segs)[np.minimum(segment - 1, len(segs) - 1)]
@@ -264,9 +274,12 @@ def synth_compression_log(*, mu_pa: float = 720.0, alpha: float = -4.7,
             "load-baseline-drift": bool(baseline_n or drift_n_per_s),
             "machine-compliance": compliance_mm_per_n > 0,
             "no-slip-platens": boundary == "no-slip",
+            "periodic-disturbance": bool(disturbance_n),
         },
         "contact_offset_mm": float(contact_offset_mm), "baseline_n": float(baseline_n),
         "drift_n_per_s": float(drift_n_per_s), "compliance_mm_per_n": float(compliance_mm_per_n),
+        "disturbance_n": float(disturbance_n), "disturbance_hz": float(disturbance_hz),
+        "disturbance_phase_rad": float(disturbance_phase_rad),
         "seed": int(seed),
         "force_true_n": f_rec,
     }
