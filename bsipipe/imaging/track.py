@@ -1002,8 +1002,8 @@ def _track_swept(frames, diameter_px, polarity, *, view, fps, roi, detection, se
 #: and takes a spot there with at least this SNR for one (the average's noise is the frames'
 #: over sqrt(STACK_FRAMES): SNR 8 there is about 2.8 in a frame, where seeded tracking still
 #: follows a marker).  On the bench twin with Poisson noise, the untracked 0.5 mm markers had
-#: SNR 10.5-13.0 in the average of 8 frames and the other spots at most 6.9; on the clean twin
-#: nothing reached 4.7.
+#: SNR 10.6-13.2 in the average of 8 frames and the other spots at most 7.0; on the clean twin
+#: nothing reached 5.
 STACK_FRAMES = 8
 FAINT_MIN_SNR = 8.0
 
