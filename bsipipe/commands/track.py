@@ -957,13 +957,16 @@ def _track_views(cfg, views, seed_df, d: dict, det, tk, progress: bool, rois: di
                 frames = (fr._replace(time_s=None) for fr in frames)
             res = track_view(prefetched(frames), s, d[v], cfg.polarity_of(v), view=v,
                              fps=cfg.fps_of(v), roi=rois[v], detection=det, settings=tk, on_frame=on_frame)
-            faint = _faint_pass(res, cfg, v, d[v], det, tk, rois[v]) if s is None else None
         except ValueError as e:
             raise InputError(str(e), path=path) from None
         finally:
             bar.close()
         if state["n"] == 0:
             raise InputError("no frames", path=path)
+        try:
+            faint = _faint_pass(res, cfg, v, d[v], det, tk, rois[v], progress=progress) if s is None else None
+        except ValueError as e:
+            raise InputError(str(e), path=path) from None
         tables.append(res.table)
         events.extend(res.events)
         info[v] = {"path": path, "n_frames": state["n"], "frame_shape_px": state["shape"], "field_of_view": res.fov,
@@ -1008,7 +1011,7 @@ def _temporal_noise(rhos: list[float]) -> dict:
             "lag_frames": rho / (1.0 - rho) if ok and rho > 0.0 else 0.0}
 
 
-def _faint_pass(res, cfg, v: str, d: float, det, tk, roi) -> dict | None:
+def _faint_pass(res, cfg, v: str, d: float, det, tk, roi, *, progress: bool = False) -> dict | None:
     """Automatic mode: the spots the average of the view's first frames shows where no track is
     (:attr:`~bsipipe.imaging.track.TrackResult.faint`: markers too faint for the whole-frame
     search in single frames, SNR 8 or more in the average), tracked as seeded markers are, in a
@@ -1032,8 +1035,13 @@ def _faint_pass(res, cfg, v: str, d: float, det, tk, roi) -> dict | None:
     frames = iter_frames(cfg.views[v], channel=cfg.channel, workers=decode_workers())
     if cfg.fps_over_stamps and cfg.fps_of(v) is not None:
         frames = (fr._replace(time_s=None) for fr in frames)
-    more = track_view(prefetched(frames), seeds, d, cfg.polarity_of(v), view=v, fps=cfg.fps_of(v), roi=roi,
-                      detection=det, settings=tk)
+    n = int(res.table["frame"].nunique()) if len(res.table) else None
+    bar = _progress(n, f"{v} (faint markers)", progress)
+    try:
+        more = track_view(prefetched(frames), seeds, d, cfg.polarity_of(v), view=v, fps=cfg.fps_of(v), roi=roi,
+                          detection=det, settings=tk, on_frame=lambda i, img: bar.update(1))
+    finally:
+        bar.close()
     # a spot an automatic track holds only in later frames (a sweep found it after the averaged
     # frames) is that track's marker: its frames the track misses are filled from the seeded
     # pass, and no second track is kept (the Poisson twin's M5 had been tracked twice)
