@@ -6,7 +6,8 @@ Forms (CONTRACTS.md)::
     bsipipe track --view NAME=PATH [--view NAME=PATH ...] [--calibration calibration.json] \\
                   [--polarity dark|bright] [--diameter-px D] [--seeds seeds.csv] [--fps F] -o DIR
 
-Each view's frames are streamed once (:func:`bsipipe.io.images.iter_frames`), detected in
+Each view's frames are streamed once (:func:`bsipipe.io.images.iter_frames`; twice without seeds
+where the first frames' average shows markers too faint for one frame), detected in
 search windows around each marker's prediction and matched globally
 (:mod:`bsipipe.imaging.track`); without seeds every frame is searched whole and the
 detections are linked.  With a calibration the two stereo views are triangulated
@@ -895,7 +896,7 @@ def _track_views(cfg, views, seed_df, d: dict, det, tk, progress: bool, rois: di
     the overlay figure) and the sha256 of every frame file (from the bytes decoded)."""
     from ..imaging.detect import is_blank, temporal_noise_correlation
     from ..imaging.track import track_view
-    from ..io.images import count_frames, decode_workers, iter_frames, prefetched
+    from ..io.images import count_frames, prefetched
 
     tables, events, info = [], [], {}
     first_images: dict[str, np.ndarray] = {}
@@ -950,11 +951,7 @@ def _track_views(cfg, views, seed_df, d: dict, det, tk, progress: bool, rois: di
             bar.update(1)
 
         try:
-            frames = iter_frames(path, channel=cfg.channel, hashes=frame_hashes, workers=decode_workers())
-            frames = _noting_stamps(frames, state)
-            if cfg.fps_over_stamps and cfg.fps_of(v) is not None:
-                # the rate given wins over the source's own stamps (a container's default rate)
-                frames = (fr._replace(time_s=None) for fr in frames)
+            frames = _view_frames(cfg, v, hashes=frame_hashes, state=state)
             res = track_view(prefetched(frames), s, d[v], cfg.polarity_of(v), view=v,
                              fps=cfg.fps_of(v), roi=rois[v], detection=det, settings=tk, on_frame=on_frame)
         except ValueError as e:
@@ -1011,6 +1008,19 @@ def _temporal_noise(rhos: list[float]) -> dict:
             "lag_frames": rho / (1.0 - rho) if ok and rho > 0.0 else 0.0}
 
 
+def _view_frames(cfg, v: str, *, hashes: dict | None = None, state: dict | None = None):
+    """View ``v``'s frames as ``track`` reads them: decoded on reader threads, the source's
+    time stamps noted in ``state`` (where given, :func:`_noting_stamps`), and dropped where the
+    config's rate wins over them (``fps_over_stamps``: a container's default rate)."""
+    from ..io.images import decode_workers, iter_frames
+    frames = iter_frames(cfg.views[v], channel=cfg.channel, hashes=hashes, workers=decode_workers())
+    if state is not None:
+        frames = _noting_stamps(frames, state)
+    if cfg.fps_over_stamps and cfg.fps_of(v) is not None:
+        frames = (fr._replace(time_s=None) for fr in frames)
+    return frames
+
+
 def _faint_pass(res, cfg, v: str, d: float, det, tk, roi, *, progress: bool = False) -> dict | None:
     """Automatic mode: the spots the average of the view's first frames shows where no track is
     (:attr:`~bsipipe.imaging.track.TrackResult.faint`: markers too faint for the whole-frame
@@ -1020,7 +1030,7 @@ def _faint_pass(res, cfg, v: str, d: float, det, tk, roi, *, progress: bool = Fa
     ``faint-markers`` warning, or None.  On the bench twin with Poisson noise the automatic
     mode had tracked 9 and 7 of the 12 markers of the two views, unsaid."""
     from ..imaging.track import track_view
-    from ..io.images import decode_workers, iter_frames, prefetched
+    from ..io.images import prefetched
     spots = res.faint or []
     if not spots:
         return None
@@ -1032,13 +1042,10 @@ def _faint_pass(res, cfg, v: str, d: float, det, tk, roi, *, progress: bool = Fa
     log.info("track: %s: %d spot(s) in the average of the first frames no automatic track holds (SNR %.3g-%.3g "
              "there): tracked from there as seeds (%s)", v, len(spots), spots[-1]["snr_average"],
              spots[0]["snr_average"], ", ".join(names))
-    frames = iter_frames(cfg.views[v], channel=cfg.channel, workers=decode_workers())
-    if cfg.fps_over_stamps and cfg.fps_of(v) is not None:
-        frames = (fr._replace(time_s=None) for fr in frames)
-    n = int(res.table["frame"].nunique()) if len(res.table) else None
-    bar = _progress(n, f"{v} (faint markers)", progress)
+    n_frames = int(res.table["frame"].nunique()) if len(res.table) else None
+    bar = _progress(n_frames, f"{v} (faint markers)", progress)
     try:
-        more = track_view(prefetched(frames), seeds, d, cfg.polarity_of(v), view=v, fps=cfg.fps_of(v), roi=roi,
+        more = track_view(prefetched(_view_frames(cfg, v)), seeds, d, cfg.polarity_of(v), view=v, fps=cfg.fps_of(v), roi=roi,
                           detection=det, settings=tk, on_frame=lambda i, img: bar.update(1))
     finally:
         bar.close()

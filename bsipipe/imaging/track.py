@@ -1037,9 +1037,8 @@ def _untracked_spots(d: dict, table: pd.DataFrame, diameter_px: float) -> list[d
     if not len(d["x_px"]):
         return []
     t = table[table["found"] & (table["frame"] < table["frame"].min() + 2 * STACK_FRAMES)] if len(table) else table
-    held = t[["x_px", "y_px"]].to_numpy(float) if len(t) else np.zeros((0, 2))
     xy = np.column_stack([d["x_px"], d["y_px"]])
-    free = _apart(xy, held, max(1.0, float(diameter_px))) if len(held) else np.ones(len(xy), bool)
+    free = _apart(xy, t[["x_px", "y_px"]].to_numpy(float), max(1.0, float(diameter_px)))
     out = [{"x_px": float(x), "y_px": float(y), "snr_average": float(snr),
             "snr_one_frame": float(snr / math.sqrt(STACK_FRAMES))}
            for x, y, snr, ok in zip(d["x_px"], d["y_px"], d["snr"], free) if ok and snr >= FAINT_MIN_SNR]
