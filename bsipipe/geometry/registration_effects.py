@@ -566,24 +566,26 @@ def _swap_evidence(data: RegistrationData, spec: RegistrationSpec, cycles: tuple
 AXIS_ORDER = (2, 0, 1)
 
 
-def _axis_levers(data: RegistrationData, spec: RegistrationSpec) -> dict[int, float]:
+def _axis_levers(data: RegistrationData, spec: RegistrationSpec, T: Similarity | None = None) -> dict[int, float]:
     """Per CT axis, :func:`~bsipipe.geometry.registration.axis_scale_lever` (mm) of the references
-    ``spec`` uses, at its fitted transform."""
+    ``spec`` uses, at its fitted transform (``T``, where the caller has it)."""
     used = np.array([n not in spec.moved for n in data.names])
-    y = ct_positions(data, spec)
-    T = fit_similarity(data.x_mm[used], y[used], scale=spec.scale)
+    if T is None:
+        y = ct_positions(data, spec)
+        T = fit_similarity(data.x_mm[used], y[used], scale=spec.scale)
     return {a: axis_scale_lever(T, data.x_mm[used], a, scale=spec.scale) for a in AXIS_ORDER}
 
 
-def _axis_candidates(data: RegistrationData, spec: RegistrationSpec) -> list[int]:
+def _axis_candidates(data: RegistrationData, spec: RegistrationSpec, T: Similarity | None = None) -> list[int]:
     """The CT axes the ct-axis-scale effect may try: none with fewer than four references in
     use (its F test would have two degrees of freedom, or none), else those along which the
-    references determine a stretch (a lever above a millionth of their spread)."""
+    references determine a stretch (a lever above a millionth of their spread; ``T``: ``spec``'s
+    fitted transform, where the caller has it)."""
     used = [n for n in data.names if n not in spec.moved]
     if spec.ct_axis is not None or len(used) < MIN_REFERENCES + 1:
         return []
     spread = float(np.sqrt(np.sum((data.y_mm - data.y_mm.mean(axis=0)) ** 2)))
-    return [a for a, lev in _axis_levers(data, spec).items() if lev > 1e-6 * spread]
+    return [a for a, lev in _axis_levers(data, spec, T).items() if lev > 1e-6 * spread]
 
 
 def _axis_choice(data: RegistrationData, spec: RegistrationSpec) -> int | None:
@@ -597,12 +599,13 @@ def _axis_choice(data: RegistrationData, spec: RegistrationSpec) -> int | None:
     if float(np.sum(before.residuals ** 2)) <= rounding_rss(len(before.residuals), data.x_mm, data.y_mm):
         return None         # the references fit to rounding: there is no misfit a stretch could explain
     best, best_key = None, None
-    for j, a in enumerate(_axis_candidates(data, spec)):
+    axes = _axis_candidates(data, spec, before.transform)
+    for j, a in enumerate(axes):
         try:
             after = fit_registration(data, replace(spec, ct_axis=a))
         except ValueError:
             continue
-        ev = _axis_evidence(data, spec, before, after)
+        ev = _axis_evidence(data, spec, before, after, n_axes=len(axes))
         key = (ev["delta_bic"], -ev["rss_after_mm2"], -j)
         if best_key is None or key > best_key:
             best, best_key = a, key
@@ -610,10 +613,11 @@ def _axis_choice(data: RegistrationData, spec: RegistrationSpec) -> int | None:
 
 
 def _axis_evidence(data: RegistrationData, spec: RegistrationSpec, before: RegistrationFit,
-                   after: RegistrationFit) -> dict:
+                   after: RegistrationFit, n_axes: int | None = None) -> dict:
     """Outside evidence for ``ct-axis-scale`` (module docstring): the references' F test of the
     added parameter, minus its cost and the choice of axis, plus the implanted-marker check
-    (``before``, ``after``: the fits of ``spec`` and of ``spec`` with the scale along the axis)."""
+    (``before``, ``after``: the fits of ``spec`` and of ``spec`` with the scale along the axis;
+    ``n_axes``: the axes tried, where the caller has counted them)."""
     n_used = int(np.sum(after.used))
     floor = rounding_rss(3 * n_used, data.x_mm, data.y_mm)
     rss0 = max(float(np.sum(np.asarray(before.residuals) ** 2)), floor)
@@ -621,7 +625,7 @@ def _axis_evidence(data: RegistrationData, spec: RegistrationSpec, before: Regis
     dof = 3 * n_used - n_params(after.spec.scale, True)
     f = (rss0 - rss1) / max(rss1 / dof, np.finfo(float).tiny)
     p = f_sf(max(f, 0.0), 1, dof)
-    k = max(len(_axis_candidates(data, spec)), 1)
+    k = max(len(_axis_candidates(data, spec, before.transform)) if n_axes is None else n_axes, 1)
     chi2_equiv = chi2_isf(max(p, 1e-300), 1)
     ev = {"delta_bic": float(chi2_equiv - np.log(3 * n_used) - 2 * np.log(k)),
           "axis": CT_AXES[after.spec.ct_axis], "factor": float(after.transform.factor),
