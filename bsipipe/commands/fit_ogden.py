@@ -917,7 +917,8 @@ def _refined_contact(final, i: int, n_logs: int, detected_mm: float, given: bool
     how it was refined (under the detector's prior of standard deviation ``sd_mm``, and by how
     many of them it moved; or free: the ``contact-offset`` effect) and the fitted toe
     half-width where there is one."""
-    sfx = f"[{i}]" if n_logs > 1 else ""
+    from ..mechanics.fit import log_suffix
+    sfx = log_suffix(n_logs)(i)
     name = f"contact_offset_mm{sfx}"
     if name not in final.values:
         return {"contact_refined_mm": detected_mm,
@@ -1046,7 +1047,7 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
     final = final_boot
 
     if kind == "logs":
-        from ..mechanics.fit import scatter_factors
+        from ..mechanics.fit import log_suffix, scatter_factors
         factors = scatter_factors(final.values, len(input_info)) if final.spec.specimen_scatter else None
         for i, (info, used) in enumerate(zip(input_info, final.used)):
             info["n_fitted"] = int(used.sum())
@@ -1059,12 +1060,12 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
             info.update(_refined_contact(final, i, len(input_info), info["contact_mm"], given,
                                          info["contact"].get("displacement_sd_mm")))
             if final.spec.baseline_drift:
-                sfx = f"[{i}]" if len(input_info) > 1 else ""
+                sfx = log_suffix(len(input_info))(i)
                 info["force_baseline"]["model"] = (f"fitted (load-baseline-drift): {final.values['baseline_n' + sfx]:.4g} N "
                                                    f"+ {final.values['drift_n_per_s' + sfx]:.3g} N/s")
             else:
                 info["force_baseline"]["model"] = "0 N: the model takes the load cell's zero as the unloaded force"
-            tare_key = "tare_n" + (f"[{i}]" if len(input_info) > 1 else "")
+            tare_key = "tare_n" + log_suffix(len(input_info))(i)
             if tare_key in final.values:
                 info["force_baseline"]["tare_n"] = float(final.values[tare_key])
             if not baseline_measurable(data[i]):

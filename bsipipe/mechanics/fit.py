@@ -443,7 +443,7 @@ def parameter_names(spec: ForceModelSpec, logs: "int | Sequence[LogData]" = 1) -
     seq = [None] * logs if isinstance(logs, (int, np.integer)) else list(logs)
     n_logs = len(seq)
     names = list(get_law(spec.law).param_names) + prony_names(spec.prony)
-    sfx = (lambda i: f"[{i}]") if n_logs > 1 else (lambda i: "")
+    sfx = log_suffix(n_logs)
     names += [f"contact_offset_mm{sfx(i)}" for i, lg in enumerate(seq) if _shifted(spec, lg)]
     names += [f"tare_n{sfx(i)}" for i, lg in enumerate(seq) if _tared(lg)]
     if spec.contact_offset:
@@ -457,6 +457,16 @@ def parameter_names(spec: ForceModelSpec, logs: "int | Sequence[LogData]" = 1) -
     if spec.periodic_disturbance:
         names += [f"{k}{sfx(i)}" for i in range(n_logs) for k in DISTURBANCE_NAMES]
     return names
+
+
+def log_suffix(n_logs: int):
+    """The suffix of log ``i``'s own parameters in a fit of ``n_logs`` logs, as a function of
+    ``i``: ``[i]`` with several logs, nothing with one.
+
+    >>> log_suffix(2)(1), log_suffix(1)(0)
+    ('[1]', '')
+    """
+    return (lambda i: f"[{i}]") if n_logs > 1 else (lambda i: "")
 
 
 #: ``periodic-disturbance``'s parameters per log: amplitude (N), frequency as the log shows it
@@ -934,7 +944,7 @@ class _LogProblem(_Problem):
             pars += [_Par(f"g{i}", 0.0, _G_MAX, 0.1),
                      _Par(f"tau{i}_s", np.log10(self.tau_bounds[0]), np.log10(self.tau_bounds[1]), 0.5, log10=True)]
         n = len(logs)
-        sfx = (lambda i: f"[{i}]") if n > 1 else (lambda i: "")
+        sfx = log_suffix(n)
         # The contact shift: free under contact_offset, else held by the detector's prior.
         # Its pseudo-observation (module docstring) is w_i sigma_i r(shift / sd_i), so it
         # weighs against log i's data residuals (weight w_i, noise sigma_i N) as a prior of
@@ -986,7 +996,7 @@ class _LogProblem(_Problem):
 
     def _split(self, values: Mapping, i: int):
         spec = self.spec
-        sfx = f"[{i}]" if len(self.logs) > 1 else ""
+        sfx = log_suffix(len(self.logs))(i)
         tissue = np.array([values[k] for k in self.law.param_names])
         g = np.array([values[f"g{j}"] for j in range(1, spec.prony + 1)])
         tau = np.array([values[f"tau{j}_s"] for j in range(1, spec.prony + 1)])
@@ -1040,28 +1050,26 @@ class _LogProblem(_Problem):
     def _nuisance_columns(self, disturbance_hz: Sequence[float] | None = None) -> np.ndarray:
         """Weighted baseline and drift columns (per log), when the spec has them; then, given
         each log's disturbance frequency, its sine and cosine columns (per log)."""
-        n = len(self.logs)
         blocks = []
         if self.spec.baseline_drift:
-            out = np.zeros((self.n_obs, 2 * n))
-            row = 0
-            for i, (w, lg, m) in enumerate(zip(self.weights, self.logs, self.used)):
-                k = int(m.sum())
-                out[row:row + k, 2 * i] = w
-                out[row:row + k, 2 * i + 1] = w * (lg.time_s[m] - lg.time_s[0])
-                row += k
-            blocks.append(out)
+            blocks.append(self._log_column_pairs(lambda i, t: (np.ones_like(t), t)))
         if disturbance_hz is not None:
-            out = np.zeros((self.n_obs, 2 * n))
-            row = 0
-            for i, (w, lg, m, hz) in enumerate(zip(self.weights, self.logs, self.used, disturbance_hz)):
-                k = int(m.sum())
-                arg = 2.0 * np.pi * hz * (lg.time_s[m] - lg.time_s[0])
-                out[row:row + k, 2 * i] = w * np.sin(arg)
-                out[row:row + k, 2 * i + 1] = w * np.cos(arg)
-                row += k
-            blocks.append(out)
+            blocks.append(self._log_column_pairs(
+                lambda i, t: (np.sin(2.0 * np.pi * disturbance_hz[i] * t), np.cos(2.0 * np.pi * disturbance_hz[i] * t))))
         return np.column_stack(blocks) if blocks else np.zeros((self.n_obs, 0))
+
+    def _log_column_pairs(self, pair) -> np.ndarray:
+        """Two weighted columns per log, nonzero on its own fitted samples: ``pair(i, t)`` of log
+        ``i``'s times from its first sample."""
+        out = np.zeros((self.n_obs, 2 * len(self.logs)))
+        row = 0
+        for i, (w, lg, m) in enumerate(zip(self.weights, self.logs, self.used)):
+            k = int(m.sum())
+            a, b = pair(i, lg.time_s[m] - lg.time_s[0])
+            out[row:row + k, 2 * i] = w * a
+            out[row:row + k, 2 * i + 1] = w * b
+            row += k
+        return out
 
     def default_values(self) -> dict:
         v = {}
@@ -1216,7 +1224,7 @@ def _put_nuisance(problem: "_LogProblem", v: dict, nu: np.ndarray, disturbance_h
     as parameters: baseline and drift; a disturbance's sine and cosine as amplitude and phase,
     :math:`a \sin x + b \cos x = A \sin(x + \varphi)`."""
     n = len(problem.logs)
-    sfx = (lambda i: f"[{i}]") if n > 1 else (lambda i: "")
+    sfx = log_suffix(n)
     j = 0
     if problem.spec.baseline_drift:
         for i in range(n):
@@ -1760,7 +1768,7 @@ def fit_logs(logs: Sequence[LogData], spec: ForceModelSpec = ForceModelSpec(), *
         if before is not None and any(peaks):
             # ``start`` and, at each of its residual's peaks, the sinusoid that residual has there
             resid = problem.raw_residuals(before)
-            sfx = (lambda i: f"[{i}]") if len(logs) > 1 else (lambda i: "")
+            sfx = log_suffix(len(logs))
             ahead = []
             for k in range(max(len(p) for p in peaks)):
                 v = dict(extra)
