@@ -591,6 +591,35 @@ def _displacement_error(tmp_path, moving=None):
     return float(np.linalg.norm(d[ok] - want[ok], axis=1).max()), mct
 
 
+def test_a_turn_of_the_head_is_not_counted_as_tracking_noise(tmp_path):
+    """The head turns 2 degrees and slides 1 mm from frame 18 on, and M1's CT position is 0.8
+    mm off.  The tracking noise every check is judged against took out the references' common
+    translation only, so the turn counted as noise: 0.164 mm per axis for a true 0.005, and
+    M1's CT check (limit 10 x the 3-D noise, 2.8 mm) was silent where the same trial without the
+    turn warns.  The F test of the rotation (p < 0.01) takes their rigid motion out instead."""
+    def m1_off(ct):
+        ct["M1"] = ct["M1"] + np.array([0.8, 0.0, 0.0])
+    _trial(tmp_path, ct_edit=m1_off)
+    _turn_head(tmp_path)
+    r, res = _register(tmp_path)
+    assert r.exit_code == 0, r.output
+    tn = res["tracking_noise"]
+    assert {"head-motion", "ct-check"} <= set(_codes(res))
+    assert tn["sigma_mm"] == pytest.approx(NOISE_MM, rel=0.3)
+    assert res["ct_check_mm"]["M1"] == pytest.approx(0.8, abs=0.05)
+    assert tn["model"] == "rigid" and tn["rotation"]["p"] < 0.01 and "rotation" in tn["note"]
+
+
+def test_no_turn_keeps_the_translation_noise(tmp_path):
+    """Without a turn the F test does not pick the rigid estimate: the noise is the translation
+    one, as before (its 261 degrees of freedom: 29 frames x 3 x (4 - 1))."""
+    _trial(tmp_path)
+    r, res = _register(tmp_path)
+    assert r.exit_code == 0, r.output
+    tn = res["tracking_noise"]
+    assert tn["model"] == "translation" and tn["rotation"]["p"] > 0.01 and tn["dof"] == 261
+
+
 @pytest.mark.parametrize("case", ["three given", "four given, one never tracked"])
 def test_head_motion_with_three_references_is_taken_out(tmp_path, case):
     """The head turns 2 degrees and slides 1 mm from frame 18 on, and three references are in

@@ -759,7 +759,7 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
     y_refs = np.array([ct_pos[r] for r in found])
     conf = _check_configuration(y_refs, path=ct, names=found, what="CT")
     conf_x = _check_configuration(pos[fi], path=xray, frame=F, names=found, what="X-ray")
-    ref_noise = reg.tracking_noise(pos)
+    ref_noise = reg.skull_tracking_noise(pos)
     noise_line = LINE_NOISE_FACTOR * math.sqrt(3.0) * ref_noise["sigma_mm"]
     if math.isfinite(noise_line) and conf_x["lateral_mm"] < noise_line:
         raise InputError(f"the X-ray positions of the references {', '.join(found)} lie on one line within their "
@@ -802,7 +802,7 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
     fre_rms = float(np.sqrt(np.mean(fre[fit.used] ** 2)))
     axis_scaled = spec.ct_axis is not None
     fle, fle_dof = reg.estimate_fle(fit.residual_vectors[fit.used], scale=spec.scale, axis_scale=axis_scaled)
-    noise = reg.tracking_noise(pos_stat[:, fit.used])
+    noise = reg.skull_tracking_noise(pos_stat[:, fit.used])
     noise_3d = float(np.sqrt(3.0) * noise["sigma_mm"])
     # the FRE noise can give: the tracking noise and the CT localisation, at most about a voxel
     # (Fitzpatrick: <FRE^2> = (3N - p) / 3N FLE^2, 1 - 2/N for a rigid fit)
@@ -1025,6 +1025,9 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
         "tracking_noise": {**noise, "rms_3d_mm": noise_3d,
                            "note": "per-axis scatter of the used references about their mean positions over "
                                    "the trial, their common translation taken out" + (
+                                       " and, the head having turned (F test of the rotation, p "
+                                       f"{noise['rotation']['p']:.2g} < {reg.ROTATION_P:g}), their rotation"
+                                       if noise["model"] == "rigid" else "") + (
                                        "; of the raw 3-D points (x_mm_raw, ..), as the motion test" if raw else
                                        "") + (f"; {', '.join(smoothed_refs)}: no raw point, smoothed points used"
                                               if smoothed_refs else ""),
