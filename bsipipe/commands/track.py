@@ -1652,6 +1652,95 @@ def _sequence_warnings(table: pd.DataFrame, events: list[dict], cfg, views, info
     return table, out
 
 
+#: One view's frames are turned back to the calibration's orientation (the loop's first step,
+#: ``view-orientation``) where that brings the two-view points' median ray gap down this many
+#: times or more; between :func:`~bsipipe.imaging.track_effects.orientation_check`'s 4 and this,
+#: exit 2 (the frames fit neither well).  The bench twin (80 frames) with cam2 mirrored: 23.3
+#: times, turned 90 degrees: 338.
+ORIENTATION_FACTOR = 10.0
+
+
+def _two_view_rows(table: pd.DataFrame, pair) -> tuple[pd.DataFrame, str]:
+    """The calibrated pair's rows of ``table`` (a copy) and the unit of their ``time_s``: in
+    frames where no view has a clock."""
+    sub = table[table["view"].isin(pair)].copy()
+    if sub["time_s"].isna().all():
+        sub["time_s"] = sub["frame"].astype(float)     # no clock: time in frames
+        return sub, "frame"
+    return sub, "s"
+
+
+def _turned_back(turned: dict, vpair: tuple, shapes: dict, cfg) -> tuple:
+    """``vpair`` with the view whose frames look turned (``turned``, of
+    :func:`~bsipipe.imaging.track_effects.orientation_check` or ``pairing_orientation``) taking
+    its frames' pixels back to the calibration's (the loop's view-orientation), where the
+    evidence is overwhelming (:data:`ORIENTATION_FACTOR`) and the loop is on; else exit 2 naming
+    the view and how its frames look: every 3-D point would be off by about the ray gap as the
+    frames are (the bench twin with cam2 mirrored: 0.46 mm, turned 90 degrees: 9.7 mm)."""
+    from ..imaging.track_effects import reoriented_view
+    ratio = turned["median_gap_as_is_mm"] / max(turned["median_gap_mm"], 1e-12)
+    turned["ratio"] = ratio
+    what = turned.get("measure", "the rays' median gap")
+    if not cfg.loop or ratio < ORIENTATION_FACTOR:
+        raise InputError(
+            f"{turned['view']}'s frames look {turned['orientation']} against the calibration: {what} is "
+            f"{turned['median_gap_mm']:.3g} mm with its positions so turned back, {turned['median_gap_as_is_mm']:.3g} "
+            f"mm as the frames are ({turned['n_points']} two-view "
+            + ("pairs" if "measure" in turned else "points")
+            + (f", {ratio:.3g} times: under {ORIENTATION_FACTOR:g} the loop does not turn a view back" if cfg.loop
+               else "; the loop, off here, would turn the view back") + "); export the frames as the calibration "
+            "images were, or calibrate from frames oriented as these (without --calibration the 2-D tracks are "
+            "written as the frames are)", path=cfg.views[turned["view"]])
+    return tuple(reoriented_view(g, turned["map_back"], shapes[g.name]) if g.name == turned["view"] else g
+                 for g in vpair)
+
+
+def _orientation_step(loop_dict: dict, turned: dict, as_is) -> None:
+    """Put the view-orientation correction in front of the loop's steps (in place): the
+    declared model's fit on the frames as they are becomes the baseline, the step takes it to
+    the loop's own baseline (the view turned back).  ``as_is``: that fit
+    (:class:`~bsipipe.imaging.track_effects.StereoFit`; None where no track paired as the frames
+    are)."""
+    from ..imaging.track_effects import _summary
+    from ..loop import gaussian_bic
+    after = loop_dict["baseline"]
+    if as_is is not None and len(as_is.residuals):
+        e = np.asarray(as_is.residuals, float)
+        n, rss = len(e), float(np.dot(e, e))
+        before = {"model": as_is.spec.describe(), "params": as_is.params, "rmse_mm": float(np.sqrt(rss / n)),
+                  "bic": gaussian_bic(rss, n, as_is.n_params), "n_obs": n, "n_params": as_is.n_params,
+                  **_summary(as_is)}
+    else:
+        nan = float("nan")
+        before = {"model": after["model"], "params": {}, "rmse_mm": nan, "ray_gap_rms_mm": nan,
+                  "ray_gap_median_mm": None, "reprojection_rms_px": nan, "n_two_view": 0, "n_single_view": 0}
+    after = loop_dict["baseline"]
+    params = {"view": turned["view"], "orientation": turned["orientation"], "map_back": turned["map_back"]}
+    step = {"effect": "view-orientation",
+            "explanation": "one view's frames are mirrored or turned against the calibration (a display or "
+                           "export setting that flips the picture, a calibration taken from frames oriented "
+                           "otherwise)",
+            "signature": "ray gaps many times the calibration's, which fall to its level with that view's "
+                         "positions mirrored or turned back",
+            "model": after["model"],
+            "evidence": {"criterion": ("median-pair-cost-ratio" if "measure" in turned else "median-ray-gap-ratio"),
+                         "median_gap_as_is_mm": turned["median_gap_as_is_mm"],
+                         "median_gap_turned_back_mm": turned["median_gap_mm"], "ratio": turned["ratio"],
+                         "threshold": ORIENTATION_FACTOR, "n_points": turned["n_points"],
+                         **({"n_pairs_as_is": turned["n_points_as_is"]} if "n_points_as_is" in turned else {})},
+            "rmse_mm_before": before["rmse_mm"], "rmse_mm_after": after.get("rmse_mm", after["ray_gap_rms_mm"]),
+            "ray_gap_rms_mm_before": before["ray_gap_rms_mm"], "ray_gap_rms_mm_after": after["ray_gap_rms_mm"],
+            "reprojection_rms_px_before": before["reprojection_rms_px"],
+            "reprojection_rms_px_after": after["reprojection_rms_px"],
+            "params": {**after["params"], **params}, "effect_params": params}
+    # every model after the step has the view turned back: "stereo+view-orientation+..."
+    for d in (step, loop_dict["final"], *loop_dict["steps"]):
+        head, _, rest = d["model"].partition("+")
+        d["model"] = head + "+view-orientation" + ("+" + rest if rest else "")
+    loop_dict["baseline"] = before
+    loop_dict["steps"].insert(0, step)
+
+
 def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, rig, pair, seed_df,
             per_view_d: dict, det, rois: dict, info: dict) -> dict:
     """Triangulate the calibrated pair and close the loop on it
@@ -1661,16 +1750,31 @@ def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, 
     and ``warnings``; returns ``table``, ``points3d``, ``loop``, ``fit``, ``data``,
     ``time_unit``, ``vpair`` and ``cross_view`` (the renaming, or None)."""
     from ..imaging.detect import FieldOfView
-    from ..imaging.track_effects import (CAPTURE_COLUMNS, WindowSource, close_stereo_loop,
-                                         match_tracks_across_views, orientation_check, stereo_data)
+    from ..imaging.track_effects import (CAPTURE_COLUMNS, StereoSpec, WindowSource, close_stereo_loop,
+                                         match_tracks_across_views, orientation_check, pairing_orientation,
+                                         stereo_data)
     from ..io.images import decode_workers
     from ..quality import warning
     vpair = (rig[pair[0]], rig[pair[1]])
+    shapes = {v: info[v]["frame_shape_px"] for v in pair}
     cross_view = None
+    oriented = None
     if seed_df is None:
-        # automatic tracks are named per view: pair them across the views by their ray gaps
+        # automatic tracks are named per view: pair them across the views by their ray gaps, with
+        # a view's frames turned back first where they pair only so (pairing_orientation)
+        turned = pairing_orientation(table, vpair, shapes)
+        if turned is not None:
+            oriented = [turned, vpair]
+            vpair = _turned_back(turned, vpair, shapes, cfg)
         crossed: list = []
         names = match_tracks_across_views(table, vpair, ambiguous=crossed)
+        if oriented is not None:
+            # the step's "before": the frames as they are, their tracks paired as they were
+            t0 = table.copy()
+            _rename_markers(t0, [], pair[1], match_tracks_across_views(table, oriented[1]))
+            sub0, _ = _two_view_rows(t0, pair)
+            oriented[1] = (stereo_data(sub0, oriented[1]), oriented[1])
+            del t0, sub0
         if crossed:
             warnings.append(warning(
                 "cross-view-ambiguous",
@@ -1687,13 +1791,28 @@ def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, 
                       "rule": "median |ray gap| (least over whole-frame shifts of up to 3 frames), pairing of least "
                                "total cost, a track left unpaired above 5x the lower quartile of the best costs "
                                "(0.3-1 mm)"}
-    sub = table[table["view"].isin(pair)].copy()
-    if sub["time_s"].isna().all():
-        sub["time_s"] = sub["frame"].astype(float)     # no clock: time in frames
-        time_unit = "frame"
-    else:
-        time_unit = "s"
+    sub, time_unit = _two_view_rows(table, pair)
     data = stereo_data(sub, vpair)
+    if oriented is None:
+        turned = orientation_check(data, shapes)
+        if turned is not None and turned["orientation"] == "swapped":
+            # the --view names are the other way round from the calibration's cameras: every 3-D
+            # point would be wrong by millimetres, and the fix is the user's (exit 2)
+            raise InputError(
+                f"the frames of {pair[0]} and {pair[1]} look swapped against the calibration (each view's frames "
+                f"are the other camera's): the rays' median gap is {turned['median_gap_mm']:.3g} mm with the views "
+                f"exchanged, {turned['median_gap_as_is_mm']:.3g} mm as given ({turned['n_points']} two-view "
+                "points); give each --view its own camera's frames (and the seeds their view's names)",
+                path=cfg.views[pair[0]])
+        if turned is not None:
+            oriented = [turned, (data, vpair)]
+            vpair = _turned_back(turned, vpair, shapes, cfg)
+            data = stereo_data(sub, vpair)
+    if oriented is not None:
+        from ..imaging.track_effects import stereo_fit
+        d0, _ = oriented[1]
+        as_is = stereo_fit(d0, StereoSpec(), max_offset_s=cfg.max_offset_s) if d0.markers else None
+        oriented = (oriented[0], as_is)
     del sub
     if det.parity == "none":
         # the frames can be searched again in windows, for the loop's track-capture
@@ -1724,26 +1843,19 @@ def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, 
                 "3-D point: " + "; ".join(f"{', '.join(ms)} ({v} only)" for v, ms in alone.items())
                 + " (seed each in both views under the same name to triangulate it)", log, markers=alone))
     loop_dict, fit, _ = close_stereo_loop(data, loop=cfg.loop, max_offset_s=cfg.max_offset_s)
-    turned = orientation_check(data, {v: info[v]["frame_shape_px"] for v in pair})
-    if turned is not None and turned["orientation"] == "swapped":
-        # the --view names are the other way round from the calibration's cameras: every 3-D
-        # point would be wrong by millimetres, and the fix is the user's (exit 2)
-        raise InputError(
-            f"the frames of {pair[0]} and {pair[1]} look swapped against the calibration (each view's frames are "
-            f"the other camera's): the rays' median gap is {turned['median_gap_mm']:.3g} mm with the views "
-            f"exchanged, {turned['median_gap_as_is_mm']:.3g} mm as given ({turned['n_points']} two-view points); "
-            "give each --view its own camera's frames (and the seeds their view's names)", path=cfg.views[pair[0]])
-    if turned is not None:
-        # one view's frames mirrored or turned against the calibration (an export that flips the
-        # picture): every 3-D point would be off by about the ray gap as the frames are (the bench
-        # twin with cam2 mirrored: 0.46 mm, turned 90 degrees: 9.7 mm), as with swapped views:
-        # the fix is the user's (exit 2); the 2-D tracks are the frames' own (no --calibration)
-        raise InputError(
-            f"{turned['view']}'s frames look {turned['orientation']} against the calibration: the rays' median "
-            f"gap is {turned['median_gap_mm']:.3g} mm with its positions so turned back, "
-            f"{turned['median_gap_as_is_mm']:.3g} mm as the frames are ({turned['n_points']} two-view points); "
-            "export the frames as the calibration images were, or calibrate from frames oriented as these "
-            "(without --calibration the 2-D tracks are written as the frames are)", path=cfg.views[turned["view"]])
+    if oriented is not None:
+        _orientation_step(loop_dict, *oriented)
+        turned = oriented[0]
+        warnings.append(warning(
+            "view-orientation",
+            f"track: {turned['view']}'s frames look {turned['orientation']} against the calibration "
+            "(" + turned.get("measure", "the rays' median gap") + f" {turned['median_gap_as_is_mm']:.3g} mm as the frames are, "
+            f"{turned['median_gap_mm']:.3g} mm with its positions turned back, over {turned['n_points']} two-view "
+            + ("pairs" if "measure" in turned else "points") + "): its positions were taken back "
+            "to the calibration's orientation before triangulating (the loop's view-orientation step); "
+            "markers2d.csv and the XMALab/DLTdv files keep the frames' own pixels. Check that the frames were "
+            "exported as intended", log, view=turned["view"], orientation=turned["orientation"],
+            median_gap_as_is_mm=turned["median_gap_as_is_mm"], median_gap_mm=turned["median_gap_mm"]))
     loop_dict["time_unit"] = time_unit
     if fit.spec.occlusion:
         # the loop's occlusion effect left these samples out of the 3-D points (a marker at the
