@@ -305,19 +305,35 @@ def test_track_warns_of_seeded_markers_found_in_few_frames(twin, tmp_path):
     assert "cam2: M2 1 of 8" in w[0]["message"]
 
 
-def test_track_views_swapped_against_the_calibration_is_exit_2(twin, tmp_path):
-    """Each --view given the other camera's frames (and seeds named accordingly): the tool
-    had worked out that the views were swapped (a view-orientation warning), then written
-    markers3d.csv with every point millimetres off and exited 0.  It is exit 2, nothing
-    written."""
+def test_track_views_swapped_against_the_calibration_are_exchanged(twin, tmp_path):
+    """Each --view given the other camera's frames (and seeds named accordingly): the tool had
+    worked out that the views were swapped (a view-orientation warning), then written
+    markers3d.csv with every point millimetres off and exited 0; then it refused (exit 2).  The
+    loop's view-orientation step triangulates each view through the other's camera: the 3-D
+    points are the correctly named run's within 1e-6 mm, markers2d.csv keeps the names as
+    given.  With --no-loop it is exit 2, nothing written."""
     seeds = pd.read_csv(twin / "synth/seeds.csv")
     seeds["view"] = seeds["view"].map({"cam1": "cam2", "cam2": "cam1"})
     seeds.to_csv(tmp_path / "seeds.csv", index=False)
-    out = tmp_path / "out"
-    r = CliRunner().invoke(cli, [str(a) for a in (
-        "track", "--view", f"cam1={twin / 'synth/sequence/cam2'}", "--view", f"cam2={twin / 'synth/sequence/cam1'}",
-        "--calibration", twin / "calibrate/calibration.json", "--seeds", tmp_path / "seeds.csv", "--fps", "0.5",
-        "-o", out)])
+    clean = pd.read_csv(_track_dir(twin, twin / "synth/sequence/cam2", twin / "synth/seeds.csv", tmp_path / "clean")
+                        / "markers3d.csv")
+    args = ["track", "--view", f"cam1={twin / 'synth/sequence/cam2'}", "--view", f"cam2={twin / 'synth/sequence/cam1'}",
+            "--calibration", twin / "calibrate/calibration.json", "--seeds", tmp_path / "seeds.csv", "--fps", "0.5"]
+    r = CliRunner().invoke(cli, [str(a) for a in args + ["-o", tmp_path / "out"]])
+    assert r.exit_code == 0, r.output
+    res = json.loads((tmp_path / "out" / "track.json").read_text())
+    w = next(w for w in res["warnings"] if w["code"] == "view-orientation")
+    assert w["orientation"] == "swapped" and "look swapped against the calibration" in w["message"]
+    step = res["loop"]["steps"][0]
+    assert step["effect"] == "view-orientation" and step["ray_gap_rms_mm_before"] > 10 * step["ray_gap_rms_mm_after"]
+    both = clean.merge(pd.read_csv(tmp_path / "out" / "markers3d.csv"), on=["frame", "marker"], suffixes=("_c", ""))
+    assert len(both) == len(clean)
+    for a in "xyz":
+        assert np.nanmax(np.abs(both[f"{a}_mm"] - both[f"{a}_mm_c"])) < 1e-6
+    m2 = pd.read_csv(tmp_path / "out" / "markers2d.csv")
+    assert sorted(m2["view"].unique()) == ["cam1", "cam2"]
+    out = tmp_path / "no_loop"
+    r = CliRunner().invoke(cli, [str(a) for a in args + ["--no-loop", "-o", out]])
     assert r.exit_code == 2 and "look swapped against the calibration" in r.output, r.output
     assert "sequence/cam2" in r.output and not out.exists()
 

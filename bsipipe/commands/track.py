@@ -1677,10 +1677,23 @@ def _turned_back(turned: dict, vpair: tuple, shapes: dict, cfg) -> tuple:
     evidence is overwhelming (:data:`ORIENTATION_FACTOR`) and the loop is on; else exit 2 naming
     the view and how its frames look: every 3-D point would be off by about the ray gap as the
     frames are (the bench twin with cam2 mirrored: 0.46 mm, turned 90 degrees: 9.7 mm)."""
-    from ..imaging.track_effects import reoriented_view
+    from ..imaging.track_effects import reoriented_view, swapped_views
     ratio = turned["median_gap_as_is_mm"] / max(turned["median_gap_mm"], 1e-12)
     turned["ratio"] = ratio
     what = turned.get("measure", "the rays' median gap")
+    swapped = turned["orientation"] == "swapped"
+    if swapped and (not cfg.loop or ratio < ORIENTATION_FACTOR):
+        a, b = (g.name for g in vpair)
+        raise InputError(
+            f"the frames of {a} and {b} look swapped against the calibration (each view's frames are the other "
+            f"camera's): {what} is {turned['median_gap_mm']:.3g} mm with the views exchanged, "
+            f"{turned['median_gap_as_is_mm']:.3g} mm as given ({turned['n_points']} two-view "
+            + ("pairs" if "measure" in turned else "points")
+            + (f", {ratio:.3g} times: under {ORIENTATION_FACTOR:g} the loop does not exchange them" if cfg.loop
+               else "; the loop, off here, would exchange them") + "); give each --view its own camera's frames "
+            "(and the seeds their view's names)", path=cfg.views[a])
+    if swapped:
+        return swapped_views(vpair)
     if not cfg.loop or ratio < ORIENTATION_FACTOR:
         raise InputError(
             f"{turned['view']}'s frames look {turned['orientation']} against the calibration: {what} is "
@@ -1719,9 +1732,9 @@ def _orientation_step(loop_dict: dict, turned: dict, as_is) -> None:
     step = {"effect": "view-orientation",
             "explanation": "one view's frames are mirrored or turned against the calibration (a display or "
                            "export setting that flips the picture, a calibration taken from frames oriented "
-                           "otherwise)",
+                           "otherwise), or the two views' frames are given the other way round",
             "signature": "ray gaps many times the calibration's, which fall to its level with that view's "
-                         "positions mirrored or turned back",
+                         "positions mirrored or turned back, or with the views exchanged",
             "model": after["model"],
             "evidence": {"criterion": ("median-pair-cost-ratio" if "measure" in turned else "median-ray-gap-ratio"),
                          "median_gap_as_is_mm": turned["median_gap_as_is_mm"],
@@ -1795,15 +1808,6 @@ def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, 
     data = stereo_data(sub, vpair)
     if oriented is None:
         turned = orientation_check(data, shapes)
-        if turned is not None and turned["orientation"] == "swapped":
-            # the --view names are the other way round from the calibration's cameras: every 3-D
-            # point would be wrong by millimetres, and the fix is the user's (exit 2)
-            raise InputError(
-                f"the frames of {pair[0]} and {pair[1]} look swapped against the calibration (each view's frames "
-                f"are the other camera's): the rays' median gap is {turned['median_gap_mm']:.3g} mm with the views "
-                f"exchanged, {turned['median_gap_as_is_mm']:.3g} mm as given ({turned['n_points']} two-view "
-                "points); give each --view its own camera's frames (and the seeds their view's names)",
-                path=cfg.views[pair[0]])
         if turned is not None:
             oriented = [turned, (data, vpair)]
             vpair = _turned_back(turned, vpair, shapes, cfg)
@@ -1846,15 +1850,21 @@ def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, 
     if oriented is not None:
         _orientation_step(loop_dict, *oriented)
         turned = oriented[0]
+        swapped = turned["orientation"] == "swapped"
+        what = (f"the frames of {turned['view']} look swapped against the calibration (each view's frames are the "
+                "other camera's)" if swapped else
+                f"{turned['view']}'s frames look {turned['orientation']} against the calibration")
+        done = ("each view was triangulated through the other's camera" if swapped else
+                "its positions were taken back to the calibration's orientation before triangulating")
         warnings.append(warning(
             "view-orientation",
-            f"track: {turned['view']}'s frames look {turned['orientation']} against the calibration "
-            "(" + turned.get("measure", "the rays' median gap") + f" {turned['median_gap_as_is_mm']:.3g} mm as the frames are, "
-            f"{turned['median_gap_mm']:.3g} mm with its positions turned back, over {turned['n_points']} two-view "
-            + ("pairs" if "measure" in turned else "points") + "): its positions were taken back "
-            "to the calibration's orientation before triangulating (the loop's view-orientation step); "
-            "markers2d.csv and the XMALab/DLTdv files keep the frames' own pixels. Check that the frames were "
-            "exported as intended", log, view=turned["view"], orientation=turned["orientation"],
+            f"track: {what} ({turned.get('measure', 'the median ray gap')} {turned['median_gap_as_is_mm']:.3g} mm "
+            f"as the frames are, {turned['median_gap_mm']:.3g} mm "
+            + ("with the views exchanged" if swapped else "with its positions turned back")
+            + f", over {turned['n_points']} two-view " + ("pairs" if "measure" in turned else "points")
+            + f"): {done} (the loop's view-orientation step); markers2d.csv and the XMALab/DLTdv files keep the "
+              "frames' own pixels and the views' names as given. Check that the frames were exported and named as "
+              "intended", log, view=turned["view"], orientation=turned["orientation"],
             median_gap_as_is_mm=turned["median_gap_as_is_mm"], median_gap_mm=turned["median_gap_mm"]))
     loop_dict["time_unit"] = time_unit
     if fit.spec.occlusion:

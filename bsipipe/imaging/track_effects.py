@@ -2261,7 +2261,8 @@ def orientation_check(d: StereoData, shapes: dict, *, factor: float = 4.0, min_m
             tuple(shapes[d.views[0].name]) == tuple(shapes[d.views[1].name]):
         m = float(np.median(np.abs(ray_gaps(d.views, ub, ua))))
         if best is None or m < best["median_gap_mm"]:
-            best = {"view": f"{d.views[0].name} and {d.views[1].name}", "orientation": "swapped", "median_gap_mm": m}
+            best = {"view": f"{d.views[0].name} and {d.views[1].name}", "orientation": "swapped",
+                    "map_back": "swapped", "median_gap_mm": m}
     if best is None or not best["median_gap_mm"] * factor <= as_is:
         return None
     return {**best, "median_gap_as_is_mm": as_is, "n_points": int(both.sum())}
@@ -2313,10 +2314,24 @@ def pairing_orientation(table: pd.DataFrame, views: tuple[ViewGeometry, ViewGeom
             if n >= min_pairs and (best is None or c < best["median_gap_mm"]):
                 best = {"view": v.name, "orientation": _INVERSE.get(name, name), "map_back": name,
                         "median_gap_mm": c, "n_points": n}
+    if all(shapes.get(v.name) is not None for v in views) and \
+            tuple(shapes[views[0].name]) == tuple(shapes[views[1].name]):
+        n, c = trial(swapped_views(views))
+        if n >= min_pairs and (best is None or c < best["median_gap_mm"]):
+            best = {"view": f"{views[0].name} and {views[1].name}", "orientation": "swapped", "map_back": "swapped",
+                    "median_gap_mm": c, "n_points": n}
     if best is None or not best["median_gap_mm"] * factor <= c0:
         return None
     return {**best, "median_gap_as_is_mm": c0, "n_points_as_is": n0,
             "measure": f"the mean pair cost (median |ray gap|, an unpaired track counted {unpaired_mm:g} mm)"}
+
+
+def swapped_views(views: tuple[ViewGeometry, ViewGeometry]) -> tuple[ViewGeometry, ViewGeometry]:
+    """Each view's name on the other's geometry: two views' frames given the other way round
+    against the calibration's cameras (``--view cam1=<cam2's frames>``), each triangulated
+    through the camera that took it; the world frame stays the calibration's."""
+    a, b = views
+    return replace(b, name=a.name), replace(a, name=b.name)
 
 
 def reoriented_view(view: ViewGeometry, map_back: str, shape) -> ViewGeometry:
