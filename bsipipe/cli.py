@@ -253,7 +253,7 @@ def synth(config, out) -> None:
 @click.argument("config", required=False, type=click.Path(dir_okay=False))
 @click.option("--view", "view", multiple=True,
               help="NAME=PATH: a view's frames (folder of PNG/TIFF/JPEG, multi-page TIFF, AVI/MP4, DICOM); repeat.")
-@click.option("--calibration", type=click.Path(dir_okay=False), help="calibration.json (stereo: 3-D and the loop).")
+@click.option("--calibration", type=click.Path(dir_okay=False), help="calibration.json of bsipipe calibrate, or OpenCV's (intrinsics.yml + extrinsics.yml, or one FileStorage file with M1 D1 M2 D2 R T) or Bouguet's toolbox's Calib_Results_stereo.mat; the first --view is camera 1 / left (stereo: 3-D and the loop).")
 @click.option("--polarity", type=click.Choice(["dark", "bright", "auto"]),
               help="Markers darker or brighter; auto (default): from the seeds, else from the first frames.")
 @click.option("--diameter-px", "diameter_px", multiple=True, metavar="D|NAME=D",

@@ -703,3 +703,44 @@ def test_a_drift_no_load_cell_has_is_warned():
     w = _drift_implausible(fit(-1.1e-3), [lg])
     assert len(w) == 1 and w[0]["code"] == "implausible-drift" and w[0]["moved_n"] == pytest.approx(0.0715)
     assert _drift_implausible(fit(-2e-5), [lg]) == []
+
+
+def test_track_takes_opencv_and_bouguet_stereo_calibrations(twin, tmp_path):
+    """The twin's calibration.json written as OpenCV's stereo_calib sample writes a pair
+    (intrinsics.yml with M1, D1, M2, D2; extrinsics.yml with R, T) and as Bouguet's toolbox's
+    Calib_Results_stereo.mat (fc, cc, kc per side, om, T, nx, ny): track through each gives the
+    3-D points of calibration.json to 1e-9 mm (the first --view is camera 1 / left)."""
+    import cv2
+    from scipy.io import savemat
+    cal = json.loads((twin / "calibrate/calibration.json").read_text())
+    a, b = cal["stereo"]["views"]
+    va, vb = cal["views"][a], cal["views"][b]
+    if len(va["dist_coeffs"]) > 5 or len(vb["dist_coeffs"]) > 5 or va.get("s_distortion") or va.get("local_distortion"):
+        pytest.skip("the tiny twin's calibration is beyond OpenCV's five coefficients")
+    fs = cv2.FileStorage(str(tmp_path / "intrinsics.yml"), cv2.FILE_STORAGE_WRITE)
+    for k, v in (("M1", va["camera_matrix"]), ("D1", [va["dist_coeffs"]]), ("M2", vb["camera_matrix"]),
+                 ("D2", [vb["dist_coeffs"]])):
+        fs.write(k, np.asarray(v, float))
+    fs.release()
+    fs = cv2.FileStorage(str(tmp_path / "extrinsics.yml"), cv2.FILE_STORAGE_WRITE)
+    fs.write("R", np.asarray(cal["stereo"]["R"], float))
+    fs.write("T", np.asarray(cal["stereo"]["T_mm"], float).reshape(3, 1))
+    fs.release()
+    K1, K2 = np.asarray(va["camera_matrix"]), np.asarray(vb["camera_matrix"])
+    om, _ = cv2.Rodrigues(np.asarray(cal["stereo"]["R"], float))
+    savemat(str(tmp_path / "Calib_Results_stereo.mat"), {
+        "fc_left": [[K1[0, 0]], [K1[1, 1]]], "cc_left": [[K1[0, 2]], [K1[1, 2]]], "alpha_c_left": 0.0,
+        "kc_left": np.asarray(va["dist_coeffs"], float)[:, None], "fc_right": [[K2[0, 0]], [K2[1, 1]]],
+        "cc_right": [[K2[0, 2]], [K2[1, 2]]], "alpha_c_right": 0.0, "kc_right": np.asarray(vb["dist_coeffs"], float)[:, None],
+        "om": om, "T": np.asarray(cal["stereo"]["T_mm"], float)[:, None],
+        "nx": float(va["image_size"][0]), "ny": float(va["image_size"][1])})
+    ref = pd.read_csv(_track_dir(twin, twin / "synth/sequence/cam2", twin / "synth/seeds.csv", tmp_path / "json")
+                      / "markers3d.csv")
+    for name in ("intrinsics.yml", "extrinsics.yml", "Calib_Results_stereo.mat"):
+        r = _invoke("track", "--view", f"{a}={twin / 'synth/sequence' / a}", "--view", f"{b}={twin / 'synth/sequence' / b}",
+                    "--calibration", tmp_path / name, "--seeds", twin / "synth/seeds.csv", "--fps", "0.5",
+                    "-o", tmp_path / name.replace(".", "_"))
+        m3 = pd.read_csv(tmp_path / name.replace(".", "_") / "markers3d.csv")
+        assert len(m3) == len(ref)
+        for c in ("x_mm", "y_mm", "z_mm"):
+            assert np.nanmax(np.abs(m3[c] - ref[c])) < 1e-9, (name, c)

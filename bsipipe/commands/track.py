@@ -499,17 +499,18 @@ def _seeds_together(seeds: pd.DataFrame, diameters: dict) -> list[tuple]:
     return out
 
 
-def _read_calibration(path, views: Sequence[str]):
+def _read_calibration(path, views: Sequence[str], shapes: dict | None = None):
     """The calibrated pair's view geometries, its two views (in ``views``' order) and the
-    calibration's own stereo reprojection RMS (px; None where the file has none)."""
+    calibration's own stereo reprojection RMS (px; None where the file has none).  ``path``:
+    ``bsipipe calibrate``'s calibration.json, or OpenCV's or Bouguet's toolbox's stereo results
+    (:func:`~bsipipe.io.stereo_calibration.read_stereo_calibration`; ``shapes``, the frames'
+    (h, w) per view, give the image sizes such files lack)."""
     from ..imaging.triangulate import views_from_calibration
-    try:
-        with open(path, encoding="utf-8") as f:
-            cal = json.load(f)
-    except FileNotFoundError:
-        raise InputError("file not found", path=path) from None
-    except (OSError, ValueError) as e:
-        raise InputError(f"cannot read the calibration: {e}", path=path) from None
+    from ..io.stereo_calibration import read_stereo_calibration
+    cal = read_stereo_calibration(path, views, shapes)
+    if isinstance(cal, dict) and cal.get("source"):
+        log.info("track: calibration read from %s (%s), cameras %s", path, cal["source"]["format"],
+                 ", ".join(f"{k} = {v}" for k, v in cal["source"]["views"].items()))
     st = cal.get("stereo") if isinstance(cal, dict) else None
     if not st or "views" not in st:
         cams = cal.get("views") if isinstance(cal, dict) else None
@@ -2093,7 +2094,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     _rates_for_unstamped_views(cfg, views)
     rig = pair = cal_rms = None
     if cfg.calibration:
-        rig, pair, cal_rms = _read_calibration(cfg.calibration, views)
+        rig, pair, cal_rms = _read_calibration(cfg.calibration, views, shapes)
         _check_frame_sizes(rig, pair, shapes, cfg.calibration)
     seed_df = read_seeds(cfg.seeds, views, shapes) if cfg.seeds else None
     if seed_df is not None:
