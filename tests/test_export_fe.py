@@ -589,3 +589,37 @@ def test_a_registration_into_a_stretched_ct_is_read_whole(tmp_path):
     from bsipipe.errors import InputError
     with pytest.raises(InputError, match="ct_axis_scale"):
         read_registration(tmp_path / "registration.json")
+
+
+def test_a_registration_into_a_sheared_ct_is_read_whole(tmp_path):
+    """registration.json with ct_gantry_shear (the register loop found the CT read without its
+    gantry tilt): export-fe maps points as its ``matrix`` does and directions along their
+    sheared images; R, t_mm and scale alone put a point 15 mm from the centre along z 2.7 mm off
+    at 10 degrees.  A bad ct_gantry_shear is an InputError naming the file."""
+    import math
+
+    from scipy.spatial.transform import Rotation
+
+    from bsipipe.commands.export_fe import read_registration
+    from bsipipe.errors import InputError
+    from bsipipe.fe.export import _ct_direction
+    from bsipipe.geometry.registration import ShearedSimilarity, Similarity
+    R = Rotation.from_rotvec([0.1, -0.3, 0.5]).as_matrix()
+    k = math.tan(math.radians(10.0))
+    T = ShearedSimilarity(R, np.array([3.0, -4.0, 80.0]), 1.0, 1, k, np.array([1.0, 2.0, 70.0]))
+    reg = {"R": R.tolist(), "t_mm": T.t_mm.tolist(), "scale": 1.0, "matrix": T.matrix().tolist(),
+           "ct_axis_scale": None,
+           "ct_gantry_shear": {"axis": "y", "axis_index": 1, "by": "z", "factor": k, "centre_mm": [1.0, 2.0, 70.0]}}
+    (tmp_path / "registration.json").write_text(json.dumps(reg))
+    got, _ = read_registration(tmp_path / "registration.json")
+    M = np.asarray(reg["matrix"])
+    x = R.T @ (np.array([1.0, 2.0, 85.0]) - T.t_mm)        # 15 mm from the centre along z in the CT
+    assert np.allclose(got.apply(x[None]), x @ M[:3, :3].T + M[:3, 3], atol=1e-12)
+    assert np.linalg.norm(Similarity(R, T.t_mm, 1.0).apply(x[None]) - got.apply(x[None])) > 2.5
+    d = _ct_direction(got, [0.0, 0.0, 2.0])
+    assert np.isclose(np.linalg.norm(d), 2.0) and np.allclose(np.cross(d, M[:3, :3] @ [0.0, 0.0, 2.0]), 0, atol=1e-12)
+    reg["ct_gantry_shear"] = {"axis": "z", "by": "z", "factor": k, "centre_mm": [0, 0, 0]}
+    (tmp_path / "registration.json").write_text(json.dumps(reg))
+    with pytest.raises(InputError, match="ct_gantry_shear") as e:
+        read_registration(tmp_path / "registration.json")
+    assert "registration.json" in str(e.value)

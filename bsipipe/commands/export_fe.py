@@ -77,33 +77,18 @@ def read_registration(path):
     ``ct_axis_scale`` (the register loop found the CT stretched along one of its axes: a slice
     spacing off) the :class:`~bsipipe.geometry.registration.AxisScaledSimilarity` into the CT
     file's frame as it is (``R``, ``t_mm`` and ``scale`` alone leave the stretch out: the
-    indentor 15 mm from the references along the axis had been placed 0.75 mm off at 5 %)."""
-    from ..geometry.registration import CT_AXES, AxisScaledSimilarity, Similarity
+    indentor 15 mm from the references along the axis had been placed 0.75 mm off at 5 %); with
+    ``ct_gantry_shear`` (the CT read without its gantry tilt) the
+    :class:`~bsipipe.geometry.registration.ShearedSimilarity` likewise (R, t_mm and scale alone
+    had placed the indentor 15 mm from the references along z 2.6 mm off at 10 degrees)
+    (:func:`~bsipipe.geometry.registration.registration_transform`; its errors name the file)."""
+    from ..geometry.registration import registration_transform
 
     reg = _read_json(path, "inputs.registration")
     try:
-        R = np.asarray(reg["R"], dtype=float)
-        t = np.asarray(reg["t_mm"], dtype=float)
-        scale = float(reg.get("scale", 1.0))
-    except (KeyError, TypeError, ValueError) as e:
-        raise InputError(f"needs R (3 x 3), t_mm (3) and scale: {e}", path=path) from None
-    if R.shape != (3, 3) or t.shape != (3,) or not np.all(np.isfinite(R)) or not np.all(np.isfinite(t)):
-        raise InputError("R must be 3 x 3 and t_mm 3 finite numbers", path=path)
-    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) <= 0 or not scale > 0:
-        raise InputError("R is not a rotation or scale is not positive", path=path)
-    st = reg.get("ct_axis_scale")
-    if st is None:
-        return Similarity(R, t, scale), reg
-    try:
-        axis = CT_AXES.index(st["axis"]) if "axis_index" not in st else int(st["axis_index"])
-        factor = float(st["factor"])
-        centre = np.asarray(st["centre_mm"], dtype=float)
-    except (KeyError, TypeError, ValueError) as e:
-        raise InputError(f"ct_axis_scale needs axis, factor and centre_mm: {e}", path=path) from None
-    if not (0 <= axis < 3 and factor > 0 and centre.shape == (3,) and np.all(np.isfinite(centre))):
-        raise InputError("ct_axis_scale: axis must be x, y or z, factor positive and centre_mm 3 finite numbers",
-                         path=path)
-    return AxisScaledSimilarity(R, t, scale, axis, factor, centre), reg
+        return registration_transform(reg), reg
+    except ValueError as e:
+        raise InputError(str(e), path=path) from None
 
 
 #: markers_ct.csv's references at the registration frame may lie this far from registration.json's

@@ -67,6 +67,11 @@ Warnings (``registration.json`` ``warnings``, also logged; codes):
     The loop kept ``ct-axis-scale``: the CT's lengths along one of its axes are off (slice
     spacing); the transform maps into the CT file's frame as it is, stretched
     (``ct_axis_scale``, ``matrix``); R, t_mm and scale alone leave the stretch out.
+``ct-gantry-shear``
+    The loop kept ``ct-gantry-shear``: the CT was acquired with the gantry tilted and read
+    without its tilt (its y, or x, sheared by z); the transform maps into the CT file's frame
+    as it is, sheared (``ct_gantry_shear``, ``matrix``), and markers_ct.csv's positions and
+    displacements are in that frame; R, t_mm and scale alone leave the shear out.
 ``tre-not-estimated``
     No degrees of freedom left for the FLE.
 ``tre-unbounded``
@@ -639,33 +644,85 @@ def _skull_fixed(tracks: pd.DataFrame, frames: np.ndarray, refs: np.ndarray, fi:
     return out, report
 
 
-#: The slice-spacing error (relative) the ``ct-axis-scale-unidentified`` warning weighs: a
-#: reconstruction interval or an uncorrected gantry tilt (18 degrees) gives 5 % or more.
+#: The slice-spacing error (relative) ``ct_axis_scale_check`` weighs: a reconstruction interval
+#: or an uncorrected gantry tilt (18 degrees) gives 5 % or more.
 UNSEEN_AXIS_SCALE = 0.05
 
 
-def _axis_scale_offsets(T, x_targets, factor: float, *, axis: int | None = None, fiducials=None,
-                        scale: bool = False) -> list[float]:
-    """How far (mm) a CT stretched by ``factor`` along ``axis`` puts each target ``x_targets``
-    (X-ray frame) from where a transform without that stretch maps it.
+def _mapped_offsets(T, x_targets, unseen=None, *, fiducials=None, scale: bool = False) -> list[float]:
+    """How far (mm) a CT stretched along one axis, or sheared, puts each target ``x_targets``
+    (X-ray frame) from where a transform without that stretch or shear maps it.
 
-    With ``fiducials`` (the references' X-ray positions): the CT file's frame is ``T``'s mapped
-    into a CT stretched about the references' centroid, and the transform is refitted to the
-    stretched references (rigid, or with ``scale``), as the loop without the effect would: the
-    error a spacing error that size leaves unseen.  Without: ``T`` is the
-    :class:`~bsipipe.geometry.registration.AxisScaledSimilarity` the loop fitted, and the offset
-    is that of its similarity part (the stretch taken out) against ``T``."""
-    from ..geometry.registration import AxisScaledSimilarity, fit_similarity
+    With ``unseen`` (``centre -> `` the map of ``T`` into a CT stretched or sheared about
+    ``centre``) and ``fiducials`` (the references' X-ray positions): the CT file's frame is that,
+    about the references' centroid, and the transform is refitted to the distorted references
+    (rigid, or with ``scale``), as the loop without the effect would: the error a distortion
+    that size leaves unseen.  Without: ``T`` is the
+    :class:`~bsipipe.geometry.registration.AxisScaledSimilarity` or
+    :class:`~bsipipe.geometry.registration.ShearedSimilarity` the loop fitted, and the offset is
+    that of its similarity part (the stretch or shear taken out) against ``T``."""
+    from ..geometry.registration import fit_similarity
 
     x = np.asarray(x_targets, dtype=float).reshape(-1, 3)
     if not len(x):
         return []
-    if fiducials is None:
+    if unseen is None:
         return [float(v) for v in np.linalg.norm(T.apply(x) - T.similarity.apply(x), axis=1)]
     f = np.asarray(fiducials, dtype=float)
-    S = AxisScaledSimilarity(T.R, T.t_mm, float(T.scale), axis, factor, T.apply(f).mean(axis=0))
+    S = unseen(T.apply(f).mean(axis=0))
     refit = fit_similarity(f, S.apply(f), scale=scale)
     return [float(v) for v in np.linalg.norm(refit.apply(x) - S.apply(x), axis=1)]
+
+
+def _unseen_check(ident: dict, offsets: dict[str, float], tre: dict[str, float], size: dict, what: str) -> dict:
+    """What the references can tell of a CT distortion they might not show (``ct_axis_scale_check``,
+    ``ct_gantry_shear_check`` in registration.json): ``ident``
+    (:func:`~bsipipe.geometry.registration_effects.axis_scale_identification` or
+    :func:`~bsipipe.geometry.registration_effects.shear_identification`), the targets' offsets
+    under a distortion of ``size`` (:func:`_mapped_offsets`) and their stated TRE; ``what``
+    names the distortion in the note.  Logged (not a warning: it is the reference layout's
+    limit, the same whether the CT is right or not; a warning had been given on 5 of 5 correct
+    CTs of the twin at 0.15 mm CT noise) when not identified and a target moves beyond its TRE."""
+    worse = {n: (o, tre[n]) for n, o in offsets.items() if not o <= tre[n]}
+    out = {"identified": bool(ident["identified"]), "axis": ident["axis"],
+           **({"by": ident["by"]} if "by" in ident else {}), "n_references": ident["n_references"],
+           "lever_mm": ident["lever_mm"], "factor_se": ident["factor_se"], **size,
+           "beyond_tre_mm": {n: v[0] for n, v in worse.items()},
+           "note": (f"{what}, which these references " + ("could show" if ident["identified"] else "cannot show")
+                    + ", would move the points in beyond_tre_mm further than their stated TRE (tre_mm does not "
+                      "include it)")}
+    if not ident["identified"] and worse:
+        worst = max(worse, key=lambda n: worse[n][0])
+        log.info("register: the references cannot show %s (%d references, lever %.2g mm, factor known to +- %.2g): "
+                 "it would move %s %.2g mm against its TRE %.2g mm", what, ident["n_references"], ident["lever_mm"],
+                 ident["factor_se"], worst, worse[worst][0], worse[worst][1])
+    return out
+
+
+def _mapped_effect_warning(report, name: str, T, x_targets, factor_se: float, what: str, cause: str,
+                           fix: str) -> dict:
+    """The warning of a kept ``ct-axis-scale`` or ``ct-gantry-shear`` (``name``): ``what`` the CT
+    file shows (with the loop's FRE and implanted-marker figures), its ``cause``, how far the
+    stretch or shear moves the markers ``x_targets`` and ``fix``."""
+    from ..quality import warning
+    from ..geometry.registration import CT_AXES
+
+    step = next(s for s in report.steps if s.effect.name == name)
+    chk = (step.evidence.get("outside") or {}).get("check")
+    off = _mapped_offsets(T, x_targets)
+    kind = "sheared" if name == "ct-gantry-shear" else "stretched"
+    return warning(
+        name,
+        f"register: {what} (loop effect {name}: FRE RMS {_fre_rms(step.before.fit):.3g} -> "
+        f"{_fre_rms(step.after.fit):.3g} mm"
+        + (f", markers localised in CT {chk['rms_before_mm']:.3g} -> {chk['rms_after_mm']:.3g} mm RMS" if chk else "")
+        + f"): {cause}; registered into the CT file's frame as it is, {kind}"
+        + (f" (the {kind[:-2]} moves the markers up to {max(off):.2g} mm from where the same transform without "
+           "it puts them)" if off else "")
+        + f", as any mesh made from this CT is: {fix}; registration.json's R, t_mm and scale alone leave the "
+          f"{kind[:-2]} out (matrix and {name.replace('-', '_')} hold it)",
+        log, axis=CT_AXES[T.axis], factor=float(T.factor), factor_se=factor_se,
+        **({"by": CT_AXES[T.by], "tilt_deg": T.tilt_deg} if name == "ct-gantry-shear" else {}))
 
 
 def _noise_ceiling(noise: dict) -> float:
@@ -689,9 +746,10 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
         The fit failed on valid input (exit 1).
     """
     from ..geometry import registration as reg
-    from ..geometry.registration_effects import (MIN_REFERENCES, RegistrationData, RegistrationSpec,
-                                                 axis_scale_identification, close_registration_loop, ct_positions,
-                                                 reference_checks, unresolved_motion)
+    from ..geometry.registration_effects import (MIN_REFERENCES, SHEAR_BY, UNSEEN_GANTRY_TILT_DEG, RegistrationData,
+                                                 RegistrationSpec, axis_scale_identification,
+                                                 close_registration_loop, ct_positions, reference_checks,
+                                                 shear_identification, unresolved_motion)
     from ..io.slicer import read_markups
     from ..provenance import ResultSet, provenance
     from ..quality import warning
@@ -801,13 +859,15 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
     fre = np.linalg.norm(fit.residual_vectors, axis=1)
     fre_rms = float(np.sqrt(np.mean(fre[fit.used] ** 2)))
     axis_scaled = spec.ct_axis is not None
-    fle, fle_dof = reg.estimate_fle(fit.residual_vectors[fit.used], scale=spec.scale, axis_scale=axis_scaled)
+    sheared = spec.ct_shear is not None
+    mapped = axis_scaled or sheared         # the CT file's frame a correct CT's, stretched or sheared
+    fle, fle_dof = reg.estimate_fle(fit.residual_vectors[fit.used], scale=spec.scale, axis_scale=mapped)
     noise = reg.skull_tracking_noise(pos_stat[:, fit.used])
     noise_3d = float(np.sqrt(3.0) * noise["sigma_mm"])
     # the FRE noise can give: the tracking noise and the CT localisation, at most about a voxel
     # (Fitzpatrick: <FRE^2> = (3N - p) / 3N FLE^2, 1 - 2/N for a rigid fit)
     n_fit = 3 * len(used)
-    ct_fre = CT_FLE_MAX_MM * math.sqrt(max(n_fit - reg.n_params(spec.scale, axis_scaled), 0) / n_fit)
+    ct_fre = CT_FLE_MAX_MM * math.sqrt(max(n_fit - reg.n_params(spec.scale, mapped), 0) / n_fit)
     fre_limit = math.hypot(NOISE_FACTOR * noise_3d, ct_fre) if np.isfinite(noise_3d) else float("nan")
     swaps = [{"references": list(c), "note": _relabel_note(c)} for c in spec.swapped]
     warnings += _reference_effect_warnings(report, has_check=bool(c_names))
@@ -941,51 +1001,48 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
                         f"or the brain shifted since the CT", log,
             markers=bad, expected_mm=check_scale, limit_mm=check_limit))
 
-    axis_se = float("nan")
-    axis_scale_check = None
-    if axis_scaled:
+    mapped_se = float("nan")
+    axis_scale_check = shear_check = None
+    not_refs = [targets[n] for n in t_names if n not in found]
+    if mapped:
         # the FLE's own uncertainty as for the TRE (nu / (nu - 2) in the mean square)
-        axis_se = reg.axis_scale_se(T, x_used, fle, scale=spec.scale) * (
+        mapped_se = reg.factor_se(T, x_used, fle, scale=spec.scale) * (
             math.sqrt(fle_dof / (fle_dof - 2.0)) if fle_dof > 2 else float("nan"))
-        step = next(s for s in report.steps if s.effect.name == "ct-axis-scale")
-        chk = (step.evidence.get("outside") or {}).get("check")
-        off = _axis_scale_offsets(T, [targets[n] for n in t_names if n not in found], T.factor)
-        warnings.append(warning(
-            "ct-axis-scale",
-            f"register: the CT file's lengths along its {reg.CT_AXES[T.axis]} axis are {T.factor:.4g} (+- "
-            f"{axis_se:.2g}) times those the X-ray markers show (loop effect ct-axis-scale: FRE RMS "
-            f"{_fre_rms(step.before.fit):.3g} -> {_fre_rms(step.after.fit):.3g} mm"
-            + (f", markers localised in CT {chk['rms_before_mm']:.3g} -> {chk['rms_after_mm']:.3g} mm RMS" if chk else "")
-            + "): its slice spacing (reconstruction interval) is not what its header says, or a tilted gantry's "
-              "table increment was taken for it; registered into the CT file's frame as it is, stretched"
-            + (f" (the stretch moves the markers up to {max(off):.2g} mm from where the same transform without "
-               "it puts them)" if off else "")
-            + ", as any mesh made from this CT is: correct the CT's spacing and segment and register again; "
-              "registration.json's R, t_mm and scale alone leave the stretch out (matrix and ct_axis_scale hold it)",
-            log, axis=reg.CT_AXES[T.axis], factor=float(T.factor), factor_se=axis_se))
+    # the tilt's standard error: d atan(k) = dk / (1 + k^2)
+    tilt_se = float(np.degrees(mapped_se / (1.0 + T.factor ** 2))) if sheared else float("nan")
+    if axis_scaled:
+        warnings.append(_mapped_effect_warning(
+            report, "ct-axis-scale", T, not_refs, mapped_se,
+            f"the CT file's lengths along its {reg.CT_AXES[T.axis]} axis are {T.factor:.4g} (+- {mapped_se:.2g}) "
+            "times those the X-ray markers show",
+            "its slice spacing (reconstruction interval) is not what its header says, or a tilted gantry's table "
+            "increment was taken for it", "correct the CT's spacing and segment and register again"))
+    elif sheared:
+        warnings.append(_mapped_effect_warning(
+            report, "ct-gantry-shear", T, not_refs, mapped_se,
+            f"the CT file's {reg.CT_AXES[T.axis]} coordinates are sheared by its {reg.CT_AXES[T.by]}: "
+            f"{T.factor:.4g} (+- {mapped_se:.2g}) mm per mm, a gantry tilt of {T.tilt_deg:.3g} (+- {tilt_se:.2g}) "
+            "degrees",
+            "the CT was acquired with the gantry tilted and read without its tilt (DICOM's GantryDetectorTilt "
+            "ignored: the slices stacked without their in-plane shift)",
+            "read the CT with its gantry tilt corrected (a reader that applies GantryDetectorTilt, or resample "
+            "it) and segment and register again"))
     elif cfg.loop and np.isfinite(fle):
-        ident = axis_scale_identification(data, spec, fle)
         tgt = [n for n in t_names if n not in found]
-        off = _axis_scale_offsets(T, [targets[n] for n in tgt], 1.0 + UNSEEN_AXIS_SCALE, axis=2,
-                                  fiducials=x_used, scale=spec.scale)
-        worse = {n: (o, float(tre[t_names.index(n)])) for n, o in zip(tgt, off)
-                 if not o <= float(tre[t_names.index(n)])}
-        # what the references can tell of a slice-spacing error, in registration.json: not a
-        # warning, as it is the reference layout's limit, the same whether the CT is right or not
-        # (a warning had been given on 5 of 5 correct CTs of the twin at 0.15 mm CT noise)
-        axis_scale_check = {
-            "identified": bool(ident["identified"]), "axis": "z", "n_references": ident["n_references"],
-            "lever_mm": ident["lever_mm"], "factor_se": ident["factor_se"], "scale_error": UNSEEN_AXIS_SCALE,
-            "beyond_tre_mm": {n: v[0] for n, v in worse.items()},
-            "note": (f"a slice spacing {100 * UNSEEN_AXIS_SCALE:g} % off, which these references "
-                     + ("could show" if ident["identified"] else "cannot show") + ", would move the points "
-                     "in beyond_tre_mm further than their stated TRE (tre_mm does not include it)")}
-        if not ident["identified"] and worse:
-            worst = max(worse, key=lambda n: worse[n][0])
-            log.info("register: the references cannot show a slice-spacing error of the CT (%d references, lever %.2g mm, "
-                     "factor known to +- %.2g); %g %% would move %s %.2g mm against its TRE %.2g mm",
-                     ident["n_references"], ident["lever_mm"], ident["factor_se"], 100 * UNSEEN_AXIS_SCALE,
-                     worst, worse[worst][0], worse[worst][1])
+        tre_of = {n: float(tre[t_names.index(n)]) for n in tgt}
+        x_tgt = [targets[n] for n in tgt]
+        k_unseen = float(np.tan(np.radians(UNSEEN_GANTRY_TILT_DEG)))
+        axis_scale_check = _unseen_check(
+            axis_scale_identification(data, spec, fle),
+            dict(zip(tgt, _mapped_offsets(T, x_tgt, lambda c: reg.AxisScaledSimilarity(
+                T.R, T.t_mm, float(T.scale), 2, 1.0 + UNSEEN_AXIS_SCALE, c), fiducials=x_used, scale=spec.scale))),
+            tre_of, {"scale_error": UNSEEN_AXIS_SCALE}, f"a slice spacing {100 * UNSEEN_AXIS_SCALE:g} % off")
+        shear_check = _unseen_check(
+            shear_identification(data, spec, fle),
+            dict(zip(tgt, _mapped_offsets(T, x_tgt, lambda c: reg.ShearedSimilarity(
+                T.R, T.t_mm, float(T.scale), 1, k_unseen, c, SHEAR_BY), fiducials=x_used, scale=spec.scale))),
+            tre_of, {"tilt_deg": UNSEEN_GANTRY_TILT_DEG, "factor": k_unseen},
+            f"a gantry tilt of {UNSEEN_GANTRY_TILT_DEG:g} degrees read without it (y sheared by z)")
 
     if abs(float(T.scale) - 1.0) > MAX_PLAUSIBLE_SCALE_ERROR:
         warnings.append(warning(
@@ -996,23 +1053,41 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
             f"this), or the CT's voxel size or the calibration target's spacing given wrong?  markers_ct.csv is in "
             "the CT file's units", log, scale=float(T.scale), limit=MAX_PLAUSIBLE_SCALE_ERROR))
 
-    axis_scale_json = None
+    axis_scale_json = shear_json = None
+    maps = "x_ct = scale * R @ x_xray + t_mm (X-ray/calibration frame to the CT frame)"
     if axis_scaled:
         axis_scale_json = {"axis": reg.CT_AXES[T.axis], "axis_index": int(T.axis), "factor": float(T.factor),
-                           "factor_se": axis_se, "centre_mm": T.centre_mm.tolist(),
+                           "factor_se": mapped_se, "centre_mm": T.centre_mm.tolist(),
                            "note": "the CT file's lengths along this axis are factor times those the X-ray "
                                    "markers show (the loop's ct-axis-scale effect): its slice spacing or "
                                    "reconstruction interval is off; factor_se from the fit at the estimated FLE"}
+        maps = ("x_ct = c + D (scale * R @ x_xray + t_mm - c), D = I + (factor - 1) e e^T along ct_axis_scale.axis "
+                "about c = ct_axis_scale.centre_mm (X-ray/calibration frame to the CT file's frame; matrix is the "
+                "whole affine map; R, t_mm and scale alone map into a CT whose lengths along that axis are "
+                "corrected, coinciding with the file's at c)")
+    elif sheared:
+        shear_json = {"axis": reg.CT_AXES[T.axis], "axis_index": int(T.axis), "by": reg.CT_AXES[T.by],
+                      "factor": float(T.factor), "factor_se": mapped_se, "tilt_deg": T.tilt_deg,
+                      "tilt_deg_se": tilt_se,
+                      "centre_mm": T.centre_mm.tolist(),
+                      "note": "the CT file's coordinate along axis is off by factor times its coordinate along by "
+                              "(from centre_mm), factor = tan(tilt_deg) (the loop's ct-gantry-shear effect): the CT "
+                              "was acquired with the gantry tilted and read without its tilt (GantryDetectorTilt "
+                              "ignored); factor_se from the fit at the estimated FLE"}
+        maps = ("x_ct = c + H (scale * R @ x_xray + t_mm - c), H = I + factor e_axis e_by^T "
+                "(ct_gantry_shear.axis sheared by ct_gantry_shear.by) about c = ct_gantry_shear.centre_mm "
+                "(X-ray/calibration frame to the CT file's frame, sheared as the file is: markers_ct.csv's positions "
+                "and displacements are in it, where a mesh made from this CT lies; matrix is the whole affine map; "
+                "R, t_mm and scale alone map into the CT read with its tilt corrected, coinciding with the file's "
+                "at c)")
     result = {
         "R": T.R.tolist(), "t_mm": T.t_mm.tolist(), "scale": float(T.scale),
-        "maps": ("x_ct = scale * R @ x_xray + t_mm (X-ray/calibration frame to the CT frame)" if not axis_scaled else
-                 "x_ct = c + D (scale * R @ x_xray + t_mm - c), D = I + (factor - 1) e e^T along ct_axis_scale.axis "
-                 "about c = ct_axis_scale.centre_mm (X-ray/calibration frame to the CT file's frame; matrix is the "
-                 "whole affine map; R, t_mm and scale alone map into a CT whose lengths along that axis are "
-                 "corrected, coinciding with the file's at c)"),
+        "maps": maps,
         "matrix": T.matrix().tolist(),
         "ct_axis_scale": axis_scale_json,
         "ct_axis_scale_check": axis_scale_check,
+        "ct_gantry_shear": shear_json,
+        "ct_gantry_shear_check": shear_check,
         "rotation_deg": reg.rotation_angle_deg(T.R),
         "frame": int(F), "time_s": None if not np.isfinite(time[fi]) else float(time[fi]),
         "ct_coordinate_system": markups.coordinate_system,
@@ -1070,6 +1145,12 @@ def run(ct: str | os.PathLike, xray: str | os.PathLike, references: Sequence[str
     rs = ResultSet(out, primary="registration.json")
     rs.add_csv("markers_ct.csv", table, float_format="%.12g")
     rs.add_text("loop.md", loop_markdown(result["loop"], title="Registration: closing the loop"))
+    from ..report.register_figure import registration_figure
+    ct_shown = {**{n: ct_pos[n] for n in ct_pos}, **(result.get("reference_ct_mm") or {})}
+    rs.add_figure("registration.png", registration_figure(
+        table, ct_shown, int(F), fre_mm=result["fre_mm"], check_mm=check, check_limit_mm=check_limit,
+        system=markups.coordinate_system, title=f"bsipipe register: {spec.describe()}, FRE RMS {fre_rms:.3g} mm"),
+        tight=False)
     rs.add_json("registration.json", result)
     rs.commit()
     log.info("register: %s, frame %d, FRE rms %.4f mm, moved %s", spec.describe(), F, fre_rms, list(spec.moved))

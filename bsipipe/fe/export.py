@@ -612,8 +612,10 @@ def _check(checks, warnings, name, value, expected, tol, unit, ok, on_fail, **ex
 
 def _ct_direction(transform, v) -> np.ndarray:
     """A direction ``v`` (X-ray frame) in the CT frame, its length kept: ``R v`` for a
-    similarity; along the image of ``v`` for a CT stretched along one of its axes
-    (:class:`~bsipipe.geometry.registration.AxisScaledSimilarity`)."""
+    similarity; along the image of ``v`` by the transform's linear part (``apply_vector``) for a
+    CT stretched along one of its axes or sheared by a gantry tilt read without it
+    (:class:`~bsipipe.geometry.registration.AxisScaledSimilarity`,
+    :class:`~bsipipe.geometry.registration.ShearedSimilarity`: both have a ``factor``)."""
     v = np.asarray(v, float)
     if not hasattr(transform, "factor"):
         return transform.R @ v
@@ -630,7 +632,7 @@ def build_handoff(cfg, *, fit: dict, transform, markers_ct: pd.DataFrame, log: L
     cfg : bsipipe.fe.config.ExportConfig
     fit : dict
         ``fit.json`` (``model``, ``params`` with an optional ``prony`` list).
-    transform : bsipipe.geometry.registration.Similarity (or AxisScaledSimilarity)
+    transform : bsipipe.geometry.registration.Similarity (or AxisScaledSimilarity, ShearedSimilarity)
         X-ray -> CT (``registration.json``).
     markers_ct : DataFrame
         ``markers_ct.csv``.

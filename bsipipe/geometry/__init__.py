@@ -2,7 +2,7 @@
 
 ``registration`` -- rigid / similarity transforms (Kabsch, Umeyama), FRE, FLE, TRE;
 ``registration_effects`` -- the register stage's loop (effects ``scale``, ``moving-reference``, ``label-swap``,
-``ct-axis-scale``);
+``ct-axis-scale``, ``ct-gantry-shear``);
 ``shape_functions`` -- C3D4, C3D10, C3D6, C3D15, C3D8, C3D20 shape functions, inverse mapping, point location.
 
 The public names are re-exported here and imported on first use, so importing one module
@@ -16,7 +16,9 @@ import importlib
 _EXPORTS = {
     "registration": ["Similarity", "fit_similarity", "fre", "estimate_fle", "tre_fitzpatrick", "tre_linearized",
                      "tre_perturbation", "leave_one_out", "reference_motion", "tracking_noise", "skull_motion",
-                     "point_configuration", "AxisScaledSimilarity", "fit_axis_scaled", "axis_scale_se"],
+                     "point_configuration", "AxisScaledSimilarity", "fit_axis_scaled", "axis_scale_se",
+                     "ShearedSimilarity", "fit_sheared", "factor_se", "registration_transform",
+                     "rigid_tracking_noise", "skull_tracking_noise"],
     "registration_effects": ["RegistrationSpec", "RegistrationData", "RegistrationFit", "fit_registration",
                              "close_registration_loop", "reference_checks", "ct_positions"],
     "shape_functions": ["ELEMENTS", "ElementType", "element_type", "shape_functions", "shape_derivatives",
