@@ -97,6 +97,9 @@ def test_clean_trial_has_an_empty_warnings_list(tmp_path):
     assert res["fre_rms_mm"] < 5 * np.sqrt(3) * NOISE_MM and res["ct_check_rms_mm"] < 0.05
     # the tracking noise the warnings are judged against: sigma per axis, 29 frames x 4 references
     assert res["tracking_noise"]["sigma_mm"] == pytest.approx(NOISE_MM, rel=0.2)
+    # the figure: markers in the CT frame, FRE and CT checks, displacements over time
+    png = (tmp_path / "out" / "registration.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 20000
 
 
 @pytest.mark.parametrize("pair", [("R1", "R3"), ("R1", "R2")])
