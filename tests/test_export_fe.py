@@ -596,20 +596,13 @@ def test_a_registration_into_a_sheared_ct_is_read_whole(tmp_path):
     gantry tilt): export-fe maps points as its ``matrix`` does and directions along their
     sheared images; R, t_mm and scale alone put a point 15 mm from the centre along z 2.7 mm off
     at 10 degrees.  A bad ct_gantry_shear is an InputError naming the file."""
-    import math
-
-    from scipy.spatial.transform import Rotation
-
     from bsipipe.commands.export_fe import read_registration
     from bsipipe.errors import InputError
     from bsipipe.fe.export import _ct_direction
-    from bsipipe.geometry.registration import ShearedSimilarity, Similarity
-    R = Rotation.from_rotvec([0.1, -0.3, 0.5]).as_matrix()
-    k = math.tan(math.radians(10.0))
-    T = ShearedSimilarity(R, np.array([3.0, -4.0, 80.0]), 1.0, 1, k, np.array([1.0, 2.0, 70.0]))
-    reg = {"R": R.tolist(), "t_mm": T.t_mm.tolist(), "scale": 1.0, "matrix": T.matrix().tolist(),
-           "ct_axis_scale": None,
-           "ct_gantry_shear": {"axis": "y", "axis_index": 1, "by": "z", "factor": k, "centre_mm": [1.0, 2.0, 70.0]}}
+    from bsipipe.geometry.registration import Similarity
+    from test_register_ct_shear import sheared_registration
+    R, T, reg = sheared_registration(10.0)
+    k = reg["ct_gantry_shear"]["factor"]
     (tmp_path / "registration.json").write_text(json.dumps(reg))
     got, _ = read_registration(tmp_path / "registration.json")
     M = np.asarray(reg["matrix"])

@@ -190,21 +190,29 @@ def test_fit_sheared_recovers_an_exact_shear_and_its_tre_matches_monte_carlo():
     assert np.all(stated > rigid)
 
 
+def sheared_registration(deg: float, scale: float = 1.0):
+    """A registration into a CT whose y is sheared by z (``deg`` of gantry tilt) about (1, 2, 70)
+    mm: its rotation, transform and registration.json dict (shared with tests/test_export_fe.py)."""
+    R = Rotation.from_rotvec([0.1, -0.3, 0.5]).as_matrix()
+    k = math.tan(math.radians(deg))
+    T = ShearedSimilarity(R, np.array([3.0, -4.0, 80.0]), scale, 1, k, np.array([1.0, 2.0, 70.0]))
+    reg = {"R": R.tolist(), "t_mm": T.t_mm.tolist(), "scale": scale, "matrix": T.matrix().tolist(),
+           "ct_axis_scale": None,
+           "ct_gantry_shear": {"axis": "y", "axis_index": 1, "by": "z", "factor": k, "centre_mm": [1.0, 2.0, 70.0]}}
+    return R, T, reg
+
+
 def test_export_fe_directions_and_registration_json_through_a_shear():
     """export-fe maps an indentor direction through the registration: for a sheared CT along the
     image of the direction by the whole linear part (normalised to its length), not by R alone
     (19.9 degrees off, for a direction near the CT's z at 20 degrees of tilt);
-    registration_transform rebuilds the sheared map from registration.json, and a bad
-    ct_gantry_shear is an error naming the key (export-fe's read_registration does not call it
-    yet: bsipipe/commands/export_fe.py is not this change's)."""
+    registration_transform rebuilds the sheared map from registration.json (export-fe's
+    read_registration reads it so: tests/test_export_fe.py), and a bad ct_gantry_shear is an
+    error naming the key."""
     from bsipipe.fe.export import _ct_direction
 
-    R = Rotation.from_rotvec([0.1, -0.3, 0.5]).as_matrix()
-    k = math.tan(math.radians(20.0))
-    T = ShearedSimilarity(R, np.array([3.0, -4.0, 80.0]), 1.01, 1, k, np.array([1.0, 2.0, 70.0]))
-    reg = {"R": R.tolist(), "t_mm": T.t_mm.tolist(), "scale": 1.01, "matrix": T.matrix().tolist(),
-           "ct_axis_scale": None,
-           "ct_gantry_shear": {"axis": "y", "axis_index": 1, "by": "z", "factor": k, "centre_mm": [1.0, 2.0, 70.0]}}
+    R, T, reg = sheared_registration(20.0, 1.01)
+    k = reg["ct_gantry_shear"]["factor"]
     got = registration_transform(reg)
     x = np.array([[0.0, 0.0, 0.0], [5.0, -3.0, 15.0], [-7.0, 2.0, -9.0]])
     M = np.asarray(reg["matrix"])

@@ -1683,28 +1683,26 @@ def _turned_back(turned: dict, vpair: tuple, shapes: dict, cfg) -> tuple:
     turned["ratio"] = ratio
     what = turned.get("measure", "the rays' median gap")
     swapped = turned["orientation"] == "swapped"
-    if swapped and (not cfg.loop or ratio < ORIENTATION_FACTOR):
-        a, b = (g.name for g in vpair)
+    if not cfg.loop or ratio < ORIENTATION_FACTOR:
+        if swapped:
+            a, b = (g.name for g in vpair)
+            said, how, given, act, path = (
+                f"the frames of {a} and {b} look swapped against the calibration (each view's frames are the other "
+                "camera's)", "with the views exchanged", "as given", "exchange them", cfg.views[a])
+            fix = "give each --view its own camera's frames (and the seeds their view's names)"
+        else:
+            said, how, given, act, path = (
+                f"{turned['view']}'s frames look {turned['orientation']} against the calibration",
+                "with its positions so turned back", "as the frames are", "turn a view back", cfg.views[turned["view"]])
+            fix = ("export the frames as the calibration images were, or calibrate from frames oriented as these "
+                   "(without --calibration the 2-D tracks are written as the frames are)")
         raise InputError(
-            f"the frames of {a} and {b} look swapped against the calibration (each view's frames are the other "
-            f"camera's): {what} is {turned['median_gap_mm']:.3g} mm with the views exchanged, "
-            f"{turned['median_gap_as_is_mm']:.3g} mm as given ({turned['n_points']} two-view "
-            + ("pairs" if "measure" in turned else "points")
-            + (f", {ratio:.3g} times: under {ORIENTATION_FACTOR:g} the loop does not exchange them" if cfg.loop
-               else "; the loop, off here, would exchange them") + "); give each --view its own camera's frames "
-            "(and the seeds their view's names)", path=cfg.views[a])
+            f"{said}: {what} is {turned['median_gap_mm']:.3g} mm {how}, {turned['median_gap_as_is_mm']:.3g} mm {given} "
+            f"({turned['n_points']} two-view " + ("pairs" if "measure" in turned else "points")
+            + (f", {ratio:.3g} times: under {ORIENTATION_FACTOR:g} the loop does not {act}" if cfg.loop
+               else f"; the loop, off here, would {act}") + f"); {fix}", path=path)
     if swapped:
         return swapped_views(vpair)
-    if not cfg.loop or ratio < ORIENTATION_FACTOR:
-        raise InputError(
-            f"{turned['view']}'s frames look {turned['orientation']} against the calibration: {what} is "
-            f"{turned['median_gap_mm']:.3g} mm with its positions so turned back, {turned['median_gap_as_is_mm']:.3g} "
-            f"mm as the frames are ({turned['n_points']} two-view "
-            + ("pairs" if "measure" in turned else "points")
-            + (f", {ratio:.3g} times: under {ORIENTATION_FACTOR:g} the loop does not turn a view back" if cfg.loop
-               else "; the loop, off here, would turn the view back") + "); export the frames as the calibration "
-            "images were, or calibrate from frames oriented as these (without --calibration the 2-D tracks are "
-            "written as the frames are)", path=cfg.views[turned["view"]])
     return tuple(reoriented_view(g, turned["map_back"], shapes[g.name]) if g.name == turned["view"] else g
                  for g in vpair)
 
