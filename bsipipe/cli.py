@@ -229,8 +229,10 @@ def compare(fe_displacements, mesh, markers, out, **opts) -> None:
     from .commands import compare as command
 
     res = command.run(fe_displacements, mesh, markers, out=out, **opts)
-    click.echo(f"compare: {res['n_markers']} markers, frame {res['frame']}, sigma {res['sigma_mm']:.4f} mm; "
-               f"wrote {Path(out) / 'compare.json'}")
+    ts = res.get("time_series")
+    click.echo(f"compare: {res['n_markers']} markers, frame {res['frame']}, sigma {res['sigma_mm']:.4f} mm"
+               + (f"; over the loading history {ts['n_results']} FE results, {len(ts['per_marker'])} markers, sigma "
+                  f"{ts['sigma_mm']:.4f} mm" if ts else "") + f"; wrote {Path(out) / 'compare.json'}")
 
 
 @cli.command("synth")

@@ -647,5 +647,8 @@ def summarise(stage: str, folder: Path) -> str:
         return (f"CalculiX: {d.get('n_results', '?')} results; deepest at t = {g(pk.get('time'))}: "
                 f"max |u| {g(pk.get('max_displacement_mm'), '.4f')} mm" + force)
     if stage == "compare":
-        return f"sigma {g(d.get('sigma_mm'), '.4f')} mm over {d.get('n_markers')} markers, frame {d.get('frame')}"
+        ts = d.get("time_series") or {}
+        return (f"sigma {g(d.get('sigma_mm'), '.4f')} mm over {d.get('n_markers')} markers, frame {d.get('frame')}"
+                + (f"; over the history {g(ts.get('sigma_mm'), '.4f')} mm, {ts.get('n_results')} FE results, "
+                   f"{len(ts.get('per_marker') or {})} markers" if ts else ""))
     return ""

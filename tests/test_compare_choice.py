@@ -264,3 +264,26 @@ def test_a_marker_missing_at_the_registration_frame_is_not_called_never_found():
                       "dx_mm": [0.0, np.nan, 0.1, np.nan, 0.2, np.nan], "dy_mm": 0.0, "dz_mm": 0.0})
     info = peak_frame_info(t)
     assert "found in 2 frames but not in the registration frame" in info.left_out["B"]
+
+
+def test_the_loading_history_is_compared_at_every_fe_result(tmp_path):
+    """With the deck's clock, every FE result falls on a frame (FE 1..4 s on frames 1..4) and is
+    set against the markers found there: M0, lost in the peak frame (behind the indentor, say),
+    is compared in the other three, where it had been left out of the comparison altogether.
+    Exact pairings: every result's sigma at round-off.  No clock, or --fe-result: no history."""
+    header = f"** {abaqus_header_line('fe_time_zero_xray_s', 10.0)}\n** {abaqus_header_line('fe_time_unit', 's')}\n"
+    mesh, fe, markers = _setup(tmp_path, header=header, drop=[("M0", 2)])
+    res = _compare(tmp_path, mesh, fe, markers)
+    assert res["frame"] == 2 and "M0" in res["skipped"]
+    ts = res["time_series"]
+    assert [r["frame"] for r in ts["results"]] == [1, 2, 3, 4] and [r["fe_result"] for r in ts["results"]] == [0, 1, 2, 3]
+    assert all(r["sigma_mm"] < EXACT_MM for r in ts["results"]) and ts["sigma_mm"] < EXACT_MM
+    assert ts["per_marker"]["M0"]["n_results"] == 3 and ts["n_pairs"] == 6 * 4 - 1
+    assert "M0" not in ts["results"][1]["markers"]
+    assert (tmp_path / "cmp" / "compare_time.png").stat().st_size > 20000
+    no_clock = tmp_path / "no_clock"
+    no_clock.mkdir()
+    mesh, fe, markers = _setup(no_clock)
+    assert _compare(no_clock, mesh, fe, markers)["time_series"] is None
+    mesh, fe, markers = _setup(tmp_path, header=header)
+    assert _compare(tmp_path, mesh, fe, markers, "--fe-result", 1)["time_series"] is None

@@ -45,3 +45,41 @@ def compare_figure(table1, sigma_mm: float | None = None, title: str | None = No
     if title:
         fig.suptitle(title)
     return fig
+
+
+def compare_time_figure(table, series: dict, markers=None):
+    """``compare_time.png``: each marker's measured displacement (x, y, z; lines, every frame of
+    ``markers_ct.csv``) and the FE model's at the FE results' times (circles), one panel per
+    axis, and sigma of each FE result against time.  ``series``: compare.json's
+    ``time_series``.  Returns the matplotlib figure."""
+    import matplotlib
+    from matplotlib.figure import Figure
+
+    names = list(series["per_marker"])
+    cmap = matplotlib.colormaps["tab10"]
+    colour = {n: cmap(k % 10) for k, n in enumerate(names)}
+    fig = Figure(figsize=(15, 3.8))
+    axes = fig.subplots(1, 4, gridspec_kw={"wspace": 0.3})
+    t = table[table["marker"].astype(str).isin(names)]
+    for j, (ax, axis) in enumerate(zip(axes[:3], ("x", "y", "z"))):
+        for n, g in t.groupby("marker", sort=False):
+            g = g.sort_values("frame")
+            ax.plot(g["time_s"], g[f"d{axis}_mm"], "-", lw=1.0, color=colour[str(n)], label=str(n))
+        for r in series["results"]:
+            for n, m in r["markers"].items():
+                ax.plot(r["time_s"], m["model_mm"][j], "o", ms=4, mfc="none", color=colour[n])
+        ax.axhline(0.0, color="0.4", lw=0.6)
+        ax.set_title(f"{axis} displacement: measured (line), FE (o)", fontsize=9)
+        ax.set_xlabel("time (s)")
+        ax.set_ylabel("mm")
+    axes[0].legend(fontsize=7, ncol=2)
+    ax = axes[3]
+    ts = [r["time_s"] for r in series["results"]]
+    ax.plot(ts, [r["sigma_mm"] for r in series["results"]], "o-", color="k", ms=4)
+    for x, r in zip(ts, series["results"]):
+        ax.annotate(str(r["n_markers"]), (x, r["sigma_mm"]), xytext=(0, 4), textcoords="offset points",
+                    fontsize=6, ha="center")
+    ax.set_title(f"sigma per FE result (n markers above); all: {series['sigma_mm']:.3g} mm", fontsize=9)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("sigma (mm)")
+    return fig
