@@ -117,6 +117,7 @@ def test_bouguet_stereo_results_map_onto_opencvs_model(tmp_path):
 
 @pytest.mark.parametrize("case, message", [
     ("single", "a single camera's results (Calib_Results.mat)"),
+    ("truncated", "not a MATLAB .mat file"),
     ("skew", "a skew of 0.01"),
     ("kc", "7 distortion coefficients"),
 ])
@@ -124,6 +125,9 @@ def test_bouguet_files_that_cannot_serve_are_refused(tmp_path, case, message):
     p = tmp_path / "x.mat"
     if case == "single":
         savemat(str(p), {"fc": [[1.0], [1.0]], "cc": [[0.0], [0.0]], "kc": [[0.0]] * 5})
+    elif case == "truncated":
+        _bouguet(p)
+        p.write_bytes(p.read_bytes()[:300])
     elif case == "skew":
         _bouguet(p, alpha_c_left=0.01)
     else:

@@ -156,7 +156,7 @@ def _bouguet(path: Path, views: Sequence[str]) -> dict:
         m = loadmat(str(path))
     except NotImplementedError:
         raise InputError("a MATLAB v7.3 (HDF5) file: save it with save(..., '-v7') to read it", path=path) from None
-    except (ValueError, OSError, TypeError) as e:
+    except Exception as e:  # noqa: BLE001 - scipy's MatReadError and the rest: an unreadable file
         raise InputError(f"not a MATLAB .mat file: {e}", path=path) from None
     need = [f"{k}_{s}" for s in ("left", "right") for k in ("fc", "cc", "kc")] + ["om", "T"]
     missing = [k for k in need if k not in m]
