@@ -307,6 +307,26 @@ def test_a_periodic_disturbance_of_the_load(tmp_path, case):
         assert lo <= truth <= hi, (k, lo, hi)
 
 
+def test_a_periodic_disturbance_on_one_of_two_logs(tmp_path):
+    """2 mN of 50.5 Hz hum on the 1 mm/s log only, a clean 0.5 mm/s log fitted with it: the
+    clean log's sinusoid (its noise's largest peak, 0.26 mN at 14.95 Hz, 7 times its neighbours)
+    was no line, so the loop had turned the effect down and kept nothing, the hum left in the
+    residual.  One line is enough now (p times the number of logs); fit.json's
+    ``periodic_disturbance`` says which log carries it."""
+    paths = []
+    for i, (speed, hum) in enumerate(((1.0, 0.002), (0.5, 0.0))):
+        t, x, f = _log(speed, 50.0, seed=1 + i)
+        paths.append(_bluehill(tmp_path / f"log{i}.csv", t, x, f + hum * np.sin(2 * np.pi * 50.5 * t + 0.3)))
+    fit = _fit(tmp_path, paths)
+    assert _steps(fit) == ["periodic-disturbance"], _steps(fit)
+    pd_ = fit["periodic_disturbance"]
+    assert pd_["with_line"] == ["log0"] and [x["line"] for x in pd_["logs"]] == [True, False]
+    assert abs(pd_["logs"][0]["amplitude_n"] - 0.002) < 3e-4 and abs(pd_["logs"][0]["hz"] - 0.5) < 0.025
+    for k, truth in (("mu_pa", MU), ("alpha", ALPHA)):
+        lo, hi = fit["ci95"][k]
+        assert lo <= truth <= hi, (k, lo, hi)
+
+
 @pytest.mark.parametrize("seed", [1, 2])
 def test_no_periodic_disturbance_on_a_clean_log(tmp_path, seed):
     """The hum cases' logs without the hum: nothing is kept, periodic-disturbance included."""
