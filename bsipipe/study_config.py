@@ -497,7 +497,9 @@ def _plan_fe(study, trial, twin, sdir, cfgdir, add, command) -> None:
         key_argv=["fe-solve", deck, repr(fs.timeout_s), length_unit])
 
     c = s.compare
-    fe_disp = _abs(c.fe_displacements, base) if c.fe_displacements else str(sdir["fe-solve"] / "displacements_peak.csv")
+    # fe-solve's whole result file: compare pairs the peak frame with the FE result at its time
+    # (the deck's clock) and sets every other result against its frame (the loading history)
+    fe_disp = _abs(c.fe_displacements, base) if c.fe_displacements else str(sdir["fe-solve"] / "job.frd")
     mesh = _abs(c.mesh, base) if c.mesh else deck
     unit = c.length_unit if (c.fe_displacements or c.mesh) else length_unit
     markers = str(sdir["register"] / "markers_ct.csv")

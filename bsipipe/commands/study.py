@@ -188,8 +188,8 @@ def fe_solve(deck: str | os.PathLike, *, out: str | os.PathLike, timeout_s: floa
     Writes ``out/job.frd`` and ``out/job.dat`` (the solver's results), ``out/ccx.log`` (its
     console output), ``out/displacements_peak.csv`` (``node,ux_<unit>,uy_<unit>,uz_<unit>``,
     ``<unit>`` the deck's ``length_unit``: the nodal displacements of the result with the
-    largest displacement, i.e. the deepest indentation, which ``compare`` sets against the
-    markers' peak frame) and ``out/fe_solve.json`` (last): the results in the ``.frd`` file,
+    largest displacement, i.e. the deepest indentation, for tools that take one result; the
+    study's ``compare`` reads ``job.frd`` whole, its peak and its loading history) and ``out/fe_solve.json`` (last): the results in the ``.frd`` file,
     which one is the peak, the largest displacement, the solver's warnings, timing and
     provenance.
     """
