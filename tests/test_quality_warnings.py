@@ -709,7 +709,10 @@ def test_track_takes_opencv_and_bouguet_stereo_calibrations(twin, tmp_path):
     """The twin's calibration.json written as OpenCV's stereo_calib sample writes a pair
     (intrinsics.yml with M1, D1, M2, D2; extrinsics.yml with R, T) and as Bouguet's toolbox's
     Calib_Results_stereo.mat (fc, cc, kc per side, om, T, nx, ny): track through each gives the
-    3-D points of calibration.json to 1e-9 mm (the first --view is camera 1 / left)."""
+    3-D points of calibration.json to 1e-9 mm (the first --view is camera 1 / left); so does
+    calibrate's own opencv_stereo.yml, which reads back to calibration.json's numbers exactly."""
+    import shutil
+
     import cv2
     from scipy.io import savemat
     cal = json.loads((twin / "calibrate/calibration.json").read_text())
@@ -736,7 +739,17 @@ def test_track_takes_opencv_and_bouguet_stereo_calibrations(twin, tmp_path):
         "nx": float(va["image_size"][0]), "ny": float(va["image_size"][1])})
     ref = pd.read_csv(_track_dir(twin, twin / "synth/sequence/cam2", twin / "synth/seeds.csv", tmp_path / "json")
                       / "markers3d.csv")
-    for name in ("intrinsics.yml", "extrinsics.yml", "Calib_Results_stereo.mat"):
+    # calibrate's own OpenCV export of the pair, read back
+    from bsipipe.io.stereo_calibration import read_stereo_calibration
+    assert cal["stereo"]["opencv"]["written"] == "opencv_stereo.yml"
+    shutil.copy(twin / "calibrate/opencv_stereo.yml", tmp_path / "opencv_stereo.yml")
+    back = read_stereo_calibration(tmp_path / "opencv_stereo.yml", [a, b])
+    for v in (a, b):
+        assert back["views"][v]["camera_matrix"] == cal["views"][v]["camera_matrix"]
+        assert back["views"][v]["dist_coeffs"] == cal["views"][v]["dist_coeffs"]
+        assert back["views"][v]["image_size"] == cal["views"][v]["image_size"]
+    assert back["stereo"]["R"] == cal["stereo"]["R"] and back["stereo"]["T_mm"] == cal["stereo"]["T_mm"]
+    for name in ("intrinsics.yml", "extrinsics.yml", "Calib_Results_stereo.mat", "opencv_stereo.yml"):
         r = _invoke("track", "--view", f"{a}={twin / 'synth/sequence' / a}", "--view", f"{b}={twin / 'synth/sequence' / b}",
                     "--calibration", tmp_path / name, "--seeds", twin / "synth/seeds.csv", "--fps", "0.5",
                     "-o", tmp_path / name.replace(".", "_"))

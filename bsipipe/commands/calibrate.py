@@ -721,7 +721,7 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
     # a view's files of an earlier run into this folder that this run does not calibrate go
     # (calibrate --view left, then --view right: mayacam_left.txt had stayed beside a
     # calibration.json without left)
-    rs = ResultSet(out, primary="calibration.json", outputs=("mayacam_*.txt", "residuals_*.png"))
+    rs = ResultSet(out, primary="calibration.json", outputs=("mayacam_*.txt", "residuals_*.png", "opencv_stereo.yml"))
     inputs: list[str] = []
     camera_pixels: dict[str, set] = {}     # camera -> the digests of its images' pixels
     own_fits: dict[str, dict] = {}         # camera -> its --view frames' fit (:func:`_own_views_fit`)
@@ -901,6 +901,7 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
         world[a] = (Ra, ta)
         world[b] = (st.R @ Ra, st.R @ ta + st.T_mm)
         result["stereo"]["world_frame"] = f"target in shared frame {f0}"
+        result["stereo"]["opencv"] = _opencv_stereo(rs, cals[a].camera, cals[b].camera, st)
     for name, cal in cals.items():
         if name not in world:
             world[name] = (cv2.Rodrigues(cal.rvecs[0])[0], cal.tvecs[0])
@@ -921,3 +922,28 @@ def run(config_path=None, *, out, images=None, pattern=None, grid=None, spacing_
     rs.add_json("calibration.json", result)
     rs.commit()
     return result
+
+
+def _opencv_stereo(rs, ca, cb, st) -> dict:
+    """``opencv_stereo.yml``: the pair in OpenCV's ``cv::FileStorage`` layout (``M1 D1 M2 D2 R T``
+    as OpenCV's stereo_calib sample writes them, and ``image_size`` where the two cameras share
+    one), for OpenCV-based tools and
+    for ``bsipipe track --calibration``; written where both cameras are OpenCV's own model (an
+    S-distortion twist or a local field has no place in it: what ``calibration.json`` says
+    instead).  Returns the calibration.json note."""
+    import cv2
+    extra = [n for n, c in (("1", ca), ("2", cb)) if c.twist_rad is not None or c.local is not None]
+    if extra:
+        return {"written": None, "why": f"camera {' and '.join(extra)} has an S-distortion twist or a local field "
+                                         "beyond OpenCV's model: use calibration.json"}
+    fs = cv2.FileStorage("opencv_stereo.yml", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
+    if tuple(ca.image_size) == tuple(cb.image_size):      # one size for the pair, as OpenCV's sample has it
+        fs.write("image_size", np.asarray(ca.image_size, np.int32))
+    for key, val in (("M1", ca.camera_matrix),
+                     ("D1", np.asarray(ca.dist_coeffs, float).reshape(1, -1)), ("M2", cb.camera_matrix),
+                     ("D2", np.asarray(cb.dist_coeffs, float).reshape(1, -1)), ("R", np.asarray(st.R, float)),
+                     ("T", np.asarray(st.T_mm, float).reshape(3, 1))):
+        fs.write(key, np.asarray(val))
+    rs.add_text("opencv_stereo.yml", fs.releaseAndGetString())
+    return {"written": "opencv_stereo.yml", "layout": "cv::FileStorage: M1 D1 (camera 1), M2 D2 (camera 2), R, T "
+                                                       "(x_2 = R x_1 + T, mm), image_size (w, h)"}
