@@ -616,3 +616,11 @@ def test_a_registration_into_a_sheared_ct_is_read_whole(tmp_path):
     with pytest.raises(InputError, match="ct_gantry_shear") as e:
         read_registration(tmp_path / "registration.json")
     assert "registration.json" in str(e.value)
+
+
+def test_the_handoff_figure_is_written(case):
+    """handoff.png: mesh, springs' brain nodes, markers and indentor in two views of the CT frame,
+    the indentor's depth (deck, log, tracked tip) and the force target on the FE clock."""
+    _, out, _, _ = case
+    png = (out / "handoff.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 30000

@@ -231,10 +231,13 @@ def run(config: str | os.PathLike, *, out: str | os.PathLike) -> dict:
     manifest["provenance"] = provenance(cfg, inputs, command="export-fe")
     # an earlier hand-off's files this one does not write go (another solver's deck, springs)
     rs = ResultSet(out, primary="manifest.json", outputs=(
-        "amplitude.csv", "indentor_trajectory.csv", "markers_fe.csv", "springs.csv", "target_force.csv",
+        "amplitude.csv", "indentor_trajectory.csv", "markers_fe.csv", "springs.csv", "target_force.csv", "handoff.png",
         "abaqus/*.inp", "febio/*.feb", "febio/*.feb.xml", "lsdyna/*.k"))
     for f in files:
         rs.add_text(f.path, f.text)
+    from ..report.handoff_figure import handoff_figure
+    rs.add_figure("handoff.png", handoff_figure(h, title=f"bsipipe export-fe: {len(h.markers_in_mesh)} markers in the "
+                                                       f"mesh, {len(h.spring_k_n_per_mm)} interface springs"))
     rs.add_json("manifest.json", manifest)
     rs.commit()
     d = h.difference_contact
