@@ -228,6 +228,14 @@ def run(config: str | os.PathLike, *, out: str | os.PathLike) -> dict:
     inputs = [p for p in (config, inp.fit, inp.registration, inp.markers_ct, inp.log, inp.markers3d, cfg.mesh) if p]
     u = unit_system(cfg.deck.units)
     manifest = _manifest(h, cfg, files, sources, reg, machine_log, u)
+    figure = _handoff_png(h)
+    import hashlib
+    manifest["files"].append({
+        "path": "handoff.png", "what": "the set-up at a glance: the mesh, the interface springs' brain nodes, the "
+        "markers and the indentor (contact point, axis) in two views of the CT frame; the indentor's depth on the FE "
+        "clock (deck amplitude, log, tracked tip) and the force target", "format": "PNG image",
+        "units": "mm, s (FE clock), N", "sha256": hashlib.sha256(figure).hexdigest(),
+        "sources": [{"quantity": "what the other files hold", "from": "this hand-off", "key": None}]})
     manifest["provenance"] = provenance(cfg, inputs, command="export-fe")
     # an earlier hand-off's files this one does not write go (another solver's deck, springs)
     rs = ResultSet(out, primary="manifest.json", outputs=(
@@ -235,15 +243,25 @@ def run(config: str | os.PathLike, *, out: str | os.PathLike) -> dict:
         "abaqus/*.inp", "febio/*.feb", "febio/*.feb.xml", "lsdyna/*.k"))
     for f in files:
         rs.add_text(f.path, f.text)
-    from ..report.handoff_figure import handoff_figure
-    rs.add_figure("handoff.png", handoff_figure(h, title=f"bsipipe export-fe: {len(h.markers_in_mesh)} markers in the "
-                                                       f"mesh, {len(h.spring_k_n_per_mm)} interface springs"))
+    rs.add_bytes("handoff.png", figure)
     rs.add_json("manifest.json", manifest)
     rs.commit()
     d = h.difference_contact
     log.info("export-fe: %d files; indentor log vs X-ray during contact: %s", len(files),
              "n/a" if d is None else f"rms {d.rms_mm:.4f} mm, max {d.max_mm:.4f} mm")
     return manifest
+
+
+def _handoff_png(h) -> bytes:
+    """``handoff.png`` (:func:`~bsipipe.report.handoff_figure.handoff_figure`) as PNG bytes: listed in
+    the manifest with its sha256 like every other file."""
+    import io
+
+    from ..report.handoff_figure import handoff_figure
+    buf = io.BytesIO()
+    handoff_figure(h, title=f"bsipipe export-fe: {len(h.markers_in_mesh)} markers in the mesh, "
+                            f"{len(h.spring_k_n_per_mm)} interface springs").savefig(buf, format="png", dpi=120)
+    return buf.getvalue()
 
 
 def _manifest(h, cfg, files, sources, reg, machine_log, u) -> dict:
