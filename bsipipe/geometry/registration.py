@@ -870,18 +870,29 @@ def skull_tracking_noise(tracks) -> dict:
     O = tracks[ok]
     _, rss_t, dof_t = _common_scatter(O)
     if out["n_references"] >= 3:
-        try:
-            _, _, rss_r, dof_r = _rigid_scatter(O)
-        except ValueError:          # on a line: the rotation about it is undetermined
-            dof_r = 0
-        if dof_r > 0 and rss_r > 0 and dof_t > dof_r:
-            d1 = dof_t - dof_r
-            f = ((rss_t - rss_r) / d1) / (rss_r / dof_r)
-            out["rotation"] = {"f": float(f), "dof": [int(d1), int(dof_r)], "p": f_sf(f, d1, dof_r)}
-            if out["rotation"]["p"] < ROTATION_P:
-                out["model"] = "rigid"
-                return _with_sigma(out, rss_r, dof_r)
+        rigid, out["rotation"] = _rotation_test(O, rss_t, dof_t)
+        if out["rotation"] is not None and out["rotation"]["p"] < ROTATION_P:
+            out["model"] = "rigid"
+            return _with_sigma(out, rigid[2], rigid[3])
     return _with_sigma(out, rss_t, dof_t)
+
+
+def _rotation_test(O: np.ndarray, rss_t: float, dof_t: int) -> tuple[tuple | None, dict | None]:
+    """Points (F >= 2, M >= 3, 3) found in every frame, with the residual sum of squares and
+    degrees of freedom of their scatter once each frame's translation is taken out
+    (:func:`_common_scatter`): their :func:`_rigid_scatter` and the F test of what taking each
+    frame's rotation out as well removes (``f``, ``dof``, ``p``); ``(None, None)`` for points
+    on a line (their rotation about it is undetermined), the test None where no scatter is left."""
+    try:
+        rigid = _rigid_scatter(O)
+    except ValueError:
+        return None, None
+    rss_r, dof_r = rigid[2], rigid[3]
+    if not (dof_r > 0 and rss_r > 0):
+        return rigid, None
+    d1 = dof_t - dof_r
+    f = ((rss_t - rss_r) / d1) / (rss_r / dof_r)
+    return rigid, {"f": float(f), "dof": [int(d1), int(dof_r)], "p": f_sf(f, d1, dof_r)}
 
 
 def reference_motion(track, others, *, time=None, max_knots: int = 12, model: str = "auto") -> dict:
@@ -954,14 +965,7 @@ def reference_motion(track, others, *, time=None, max_knots: int = 12, model: st
         return empty
     rotation, rigid = None, None
     if m >= 3 and model != "translation":
-        try:
-            rigid = _rigid_scatter(O)
-        except ValueError:          # the others on a line: their rotation about it is undetermined
-            rigid = None
-        if rigid is not None and rigid[3] > 0 and rigid[2] > 0:
-            d1 = dof_o - rigid[3]
-            f = ((rss_o - rigid[2]) / d1) / (rigid[2] / rigid[3])
-            rotation = {"f": float(f), "dof": [int(d1), int(rigid[3])], "p": f_sf(f, d1, rigid[3])}
+        rigid, rotation = _rotation_test(O, rss_o, dof_o)
     if rigid is not None and rotation is not None and (model == "rigid" or rotation["p"] < ROTATION_P):
         Ts, shape, rss_r, dof_r = rigid
         a = np.stack([T.apply(x) for T, x in zip(Ts, track[idx])])
