@@ -567,16 +567,9 @@ def _disturbance_lines(final, data) -> dict | None:
     the clean one, no line): this says which is which."""
     if not getattr(final.spec, "periodic_disturbance", False):
         return None
-    from ..mechanics.effects import DISTURBANCE_LINE_P
-    from ..mechanics.fit import disturbance_line_test
-    logs = []
-    for i, lg in enumerate(data):
-        v = final.log_params(i)
-        t = disturbance_line_test(lg.time_s[final.used[i]], final.residuals[i], v["disturbance_n"], v["disturbance_hz"])
-        p = min(1.0, t["p"] * len(data))
-        logs.append({"log": lg.name, "amplitude_n": float(v["disturbance_n"]), "hz": float(v["disturbance_hz"]),
-                     "phase_rad": float(v["disturbance_phase_rad"]), "line_ratio": float(t["ratio"]), "p": float(p),
-                     "line": bool(p < DISTURBANCE_LINE_P)})
+    from ..mechanics.effects import DISTURBANCE_LINE_P, disturbance_lines
+    keys = ("log", "amplitude_n", "hz", "phase_rad", "line_ratio", "p", "line")
+    logs = [{k: t[k] for k in keys} for t in disturbance_lines(data, final)]
     lines = [x["log"] for x in logs if x["line"]]
     log.info("fit-ogden: periodic disturbance a line in %s%s", ", ".join(lines) or "no log",
              "" if len(lines) == len(logs) else

@@ -520,23 +520,37 @@ def disturbance_veto(logs: Sequence[LogData], before, after) -> str | None:
     mN at 14.95 Hz, 7.1 times its neighbours) was no line, and the loop kept nothing."""
     if not getattr(after.spec, "periodic_disturbance", False) or getattr(before.spec, "periodic_disturbance", False):
         return None
-    fit = after.fit
-    tests = []
+    tests = disturbance_lines(logs, after.fit)
+    if any(t["line"] for t in tests):
+        return None
+    t = min(tests, key=lambda t: t["p_log"])
+    which = f"log {t['index']}" if len(logs) > 1 else "the log"
+    return (f"the sinusoid of {which} ({t['amplitude_n']:.3g} N at {t['hz']:.4g} Hz"
+            + (", the strongest line of the logs" if len(logs) > 1 else "") + f") stands "
+            f"{t['line_ratio']:.1f} times above the mean of the {t['n_neighbours']} periodogram ordinates "
+            f"around it: as a chance peak of a smooth spectrum over the {t['n_frequencies']:.0f} frequencies "
+            f"searched" + (f" and {len(logs)} logs" if len(logs) > 1 else "")
+            + f", p = {t['p']:.2g} (not below {DISTURBANCE_LINE_P:g}): a broad misfit or red noise, not a periodic "
+              "disturbance")
+
+
+def disturbance_lines(logs: Sequence[LogData], fit) -> list[dict]:
+    """Each log's fitted ``periodic-disturbance`` sinusoid and its line test
+    (:func:`~bsipipe.mechanics.fit.disturbance_line_test`) in a fit of ``logs``: ``index``,
+    ``log``, ``amplitude_n``, ``hz``, ``phase_rad``, ``line_ratio``, ``n_neighbours``,
+    ``n_frequencies``, ``p_log`` (the log's own), ``p`` (family-wise: times the number of logs)
+    and ``line`` (``p`` below :data:`DISTURBANCE_LINE_P`): what :func:`disturbance_veto` decides on and fit.json reports."""
+    out = []
     for i, lg in enumerate(logs):
         v = fit.log_params(i)
-        test = disturbance_line_test(lg.time_s[fit.used[i]], fit.residuals[i], v["disturbance_n"], v["disturbance_hz"])
-        tests.append((i, v, test))
-        if min(1.0, test["p"] * len(logs)) < DISTURBANCE_LINE_P:
-            return None
-    i, v, test = min(tests, key=lambda x: x[2]["p"])
-    which = f"log {i}" if len(logs) > 1 else "the log"
-    return (f"the sinusoid of {which} ({v['disturbance_n']:.3g} N at {v['disturbance_hz']:.4g} Hz"
-            + (", the strongest line of the logs" if len(logs) > 1 else "") + f") stands "
-            f"{test['ratio']:.1f} times above the mean of the {test['n_neighbours']} periodogram ordinates "
-            f"around it: as a chance peak of a smooth spectrum over the {test['n_frequencies']:.0f} frequencies "
-            f"searched" + (f" and {len(logs)} logs" if len(logs) > 1 else "")
-            + f", p = {min(1.0, test['p'] * len(logs)):.2g} (not below {DISTURBANCE_LINE_P:g}): a broad misfit or "
-              "red noise, not a periodic disturbance")
+        t = disturbance_line_test(lg.time_s[fit.used[i]], fit.residuals[i], v["disturbance_n"], v["disturbance_hz"])
+        p = min(1.0, t["p"] * len(logs))
+        out.append({"index": i, "log": lg.name, "amplitude_n": float(v["disturbance_n"]),
+                    "hz": float(v["disturbance_hz"]), "phase_rad": float(v["disturbance_phase_rad"]),
+                    "line_ratio": float(t["ratio"]), "n_neighbours": int(t["n_neighbours"]),
+                    "n_frequencies": float(t["n_frequencies"]), "p_log": float(t["p"]), "p": float(p),
+                    "line": bool(p < DISTURBANCE_LINE_P)})
+    return out
 
 
 def close_loop_logs(logs: Sequence[LogData], spec0: ForceModelSpec, *, boundary_declared: bool = True,
