@@ -539,7 +539,8 @@ def disturbance_lines(logs: Sequence[LogData], fit) -> list[dict]:
     (:func:`~bsipipe.mechanics.fit.disturbance_line_test`) in a fit of ``logs``: ``index``,
     ``log``, ``amplitude_n``, ``hz``, ``phase_rad``, ``line_ratio``, ``n_neighbours``,
     ``n_frequencies``, ``p_log`` (the log's own), ``p`` (family-wise: times the number of logs)
-    and ``line`` (``p`` below :data:`DISTURBANCE_LINE_P`): what :func:`disturbance_veto` decides on and fit.json reports."""
+    and ``line`` (``p`` below :data:`DISTURBANCE_LINE_P`): what :func:`disturbance_veto` decides
+    on and fit.json reports."""
     out = []
     for i, lg in enumerate(logs):
         v = fit.log_params(i)
