@@ -2242,30 +2242,34 @@ def orientation_check(d: StereoData, shapes: dict, *, factor: float = 4.0, min_m
     ua, ub = d.xa[both], d.xb[both]
     as_is = float(np.median(np.abs(ray_gaps(d.views, ua, ub))))
     best = None
-    for k, (own, other) in enumerate(((ua, ub), (ub, ua))):
-        v = d.views[k]
+    for cand, views in _orientation_candidates(d.views, shapes):
+        m = float(np.median(np.abs(ray_gaps(views, ua, ub))))
+        if best is None or m < best["median_gap_mm"]:
+            best = {**cand, "median_gap_mm": m}
+    if best is None or not best["median_gap_mm"] * factor <= as_is:
+        return None
+    return {**best, "median_gap_as_is_mm": as_is, "n_points": int(both.sum())}
+
+
+def _orientation_candidates(views: tuple[ViewGeometry, ViewGeometry], shapes: dict):
+    """The ways two views' frames may be oriented against their calibration, in the order
+    :func:`orientation_check` and :func:`pairing_orientation` try them: each view's frames
+    mirrored or turned (:func:`_orientations`; a view without a shape is skipped), then the two
+    views' frames exchanged (frames of one size).  Yields ``({"view", "orientation",
+    "map_back"}, views as they would then be)``: the orientation the frames look to have is the
+    inverse of the map that brings them back."""
+    for k, v in enumerate(views):
         shape = shapes.get(v.name)
         if shape is None:
             continue
         h, w = int(shape[0]), int(shape[1])
-        for name, turn in _orientations(w, h):
-            t = turn(own)
-            g = ray_gaps(d.views, t, other) if k == 0 else ray_gaps(d.views, other, t)
-            m = float(np.median(np.abs(g)))
-            if best is None or m < best["median_gap_mm"]:
-                # the frames are turned the inverse way of the map that brings them back
-                best = {"view": v.name, "orientation": _INVERSE.get(name, name), "map_back": name,
-                        "median_gap_mm": m}
-    # the two views' frames given the other way round (--view cam1=<cam2's frames> ...)
-    if all(shapes.get(v.name) is not None for v in d.views) and \
-            tuple(shapes[d.views[0].name]) == tuple(shapes[d.views[1].name]):
-        m = float(np.median(np.abs(ray_gaps(d.views, ub, ua))))
-        if best is None or m < best["median_gap_mm"]:
-            best = {"view": f"{d.views[0].name} and {d.views[1].name}", "orientation": "swapped",
-                    "map_back": "swapped", "median_gap_mm": m}
-    if best is None or not best["median_gap_mm"] * factor <= as_is:
-        return None
-    return {**best, "median_gap_as_is_mm": as_is, "n_points": int(both.sum())}
+        for name, _ in _orientations(w, h):
+            yield ({"view": v.name, "orientation": _INVERSE.get(name, name), "map_back": name},
+                   tuple(reoriented_view(g, name, shape) if i == k else g for i, g in enumerate(views)))
+    if all(shapes.get(v.name) is not None for v in views) and \
+            tuple(shapes[views[0].name]) == tuple(shapes[views[1].name]):
+        yield ({"view": f"{views[0].name} and {views[1].name}", "orientation": "swapped", "map_back": "swapped"},
+               swapped_views(views))
 
 
 #: Frames of the automatic tracks the trial pairings of :func:`pairing_orientation` use at most
@@ -2303,23 +2307,10 @@ def pairing_orientation(table: pd.DataFrame, views: tuple[ViewGeometry, ViewGeom
 
     n0, c0 = trial(views)
     best = None
-    for k, v in enumerate(views):
-        shape = shapes.get(v.name)
-        if shape is None:
-            continue
-        h, w = int(shape[0]), int(shape[1])
-        for name, _ in _orientations(w, h):
-            turned = tuple(reoriented_view(g, name, shape) if i == k else g for i, g in enumerate(views))
-            n, c = trial(turned)
-            if n >= min_pairs and (best is None or c < best["median_gap_mm"]):
-                best = {"view": v.name, "orientation": _INVERSE.get(name, name), "map_back": name,
-                        "median_gap_mm": c, "n_points": n}
-    if all(shapes.get(v.name) is not None for v in views) and \
-            tuple(shapes[views[0].name]) == tuple(shapes[views[1].name]):
-        n, c = trial(swapped_views(views))
+    for cand, turned in _orientation_candidates(views, shapes):
+        n, c = trial(turned)
         if n >= min_pairs and (best is None or c < best["median_gap_mm"]):
-            best = {"view": f"{views[0].name} and {views[1].name}", "orientation": "swapped", "map_back": "swapped",
-                    "median_gap_mm": c, "n_points": n}
+            best = {**cand, "median_gap_mm": c, "n_points": n}
     if best is None or not best["median_gap_mm"] * factor <= c0:
         return None
     return {**best, "median_gap_as_is_mm": c0, "n_points_as_is": n0,
