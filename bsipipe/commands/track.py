@@ -1685,19 +1685,16 @@ def _turned_back(turned: dict, vpair: tuple, shapes: dict, cfg) -> tuple:
     swapped = turned["orientation"] == "swapped"
     if not cfg.loop or ratio < ORIENTATION_FACTOR:
         if swapped:
-            a, b = (g.name for g in vpair)
-            said, how, given, act, path = (
-                f"the frames of {a} and {b} look swapped against the calibration (each view's frames are the other "
-                "camera's)", "with the views exchanged", "as given", "exchange them", cfg.views[a])
+            how, given, act, path = ("with the views exchanged", "as given", "exchange them", cfg.views[vpair[0].name])
             fix = "give each --view its own camera's frames (and the seeds their view's names)"
         else:
-            said, how, given, act, path = (
-                f"{turned['view']}'s frames look {turned['orientation']} against the calibration",
-                "with its positions so turned back", "as the frames are", "turn a view back", cfg.views[turned["view"]])
+            how, given, act, path = ("with its positions so turned back", "as the frames are", "turn a view back",
+                                     cfg.views[turned["view"]])
             fix = ("export the frames as the calibration images were, or calibrate from frames oriented as these "
                    "(without --calibration the 2-D tracks are written as the frames are)")
         raise InputError(
-            f"{said}: {what} is {turned['median_gap_mm']:.3g} mm {how}, {turned['median_gap_as_is_mm']:.3g} mm {given} "
+            f"{_orientation_said(turned)}: {what} is {turned['median_gap_mm']:.3g} mm {how}, "
+            f"{turned['median_gap_as_is_mm']:.3g} mm {given} "
             f"({turned['n_points']} two-view " + ("pairs" if "measure" in turned else "points")
             + (f", {ratio:.3g} times: under {ORIENTATION_FACTOR:g} the loop does not {act}" if cfg.loop
                else f"; the loop, off here, would {act}") + f"); {fix}", path=path)
@@ -1705,6 +1702,33 @@ def _turned_back(turned: dict, vpair: tuple, shapes: dict, cfg) -> tuple:
         return swapped_views(vpair)
     return tuple(reoriented_view(g, turned["map_back"], shapes[g.name]) if g.name == turned["view"] else g
                  for g in vpair)
+
+
+def _orientation_said(turned: dict) -> str:
+    """How the frames look against the calibration (``turned``: :func:`_turned_back`'s), for the
+    refusal and the warning alike."""
+    if turned["orientation"] == "swapped":
+        return (f"the frames of {turned['view']} look swapped against the calibration (each view's frames are the "
+                "other camera's)")
+    return f"{turned['view']}'s frames look {turned['orientation']} against the calibration"
+
+
+def _orientation_warning(turned: dict) -> dict:
+    """The ``view-orientation`` warning of a view (or pair) the loop turned back or exchanged."""
+    from ..quality import warning
+    swapped = turned["orientation"] == "swapped"
+    done = ("each view was triangulated through the other's camera" if swapped else
+            "its positions were taken back to the calibration's orientation before triangulating")
+    return warning(
+        "view-orientation",
+        f"track: {_orientation_said(turned)} ({turned.get('measure', 'the median ray gap')} "
+        f"{turned['median_gap_as_is_mm']:.3g} mm as the frames are, {turned['median_gap_mm']:.3g} mm "
+        + ("with the views exchanged" if swapped else "with its positions turned back")
+        + f", over {turned['n_points']} two-view " + ("pairs" if "measure" in turned else "points")
+        + f"): {done} (the loop's view-orientation step); markers2d.csv and the XMALab/DLTdv files keep the "
+          "frames' own pixels and the views' names as given. Check that the frames were exported and named as "
+          "intended", log, view=turned["view"], orientation=turned["orientation"],
+        median_gap_as_is_mm=turned["median_gap_as_is_mm"], median_gap_mm=turned["median_gap_mm"])
 
 
 def _orientation_step(loop_dict: dict, turned: dict, as_is) -> None:
@@ -1726,7 +1750,6 @@ def _orientation_step(loop_dict: dict, turned: dict, as_is) -> None:
         nan = float("nan")
         before = {"model": after["model"], "params": {}, "rmse_mm": nan, "ray_gap_rms_mm": nan,
                   "ray_gap_median_mm": None, "reprojection_rms_px": nan, "n_two_view": 0, "n_single_view": 0}
-    after = loop_dict["baseline"]
     params = {"view": turned["view"], "orientation": turned["orientation"], "map_back": turned["map_back"]}
     step = {"effect": "view-orientation",
             "explanation": "one view's frames are mirrored or turned against the calibration (a display or "
@@ -1764,29 +1787,29 @@ def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, 
     from ..imaging.detect import FieldOfView
     from ..imaging.track_effects import (CAPTURE_COLUMNS, StereoSpec, WindowSource, close_stereo_loop,
                                          match_tracks_across_views, orientation_check, pairing_orientation,
-                                         stereo_data)
+                                         stereo_data, stereo_fit)
     from ..io.images import decode_workers
     from ..quality import warning
     vpair = (rig[pair[0]], rig[pair[1]])
     shapes = {v: info[v]["frame_shape_px"] for v in pair}
     cross_view = None
-    oriented = None
+    # the view-orientation step: how the frames look (or None) and the two-view data as they are
+    oriented = as_is_data = None
     if seed_df is None:
         # automatic tracks are named per view: pair them across the views by their ray gaps, with
         # a view's frames turned back first where they pair only so (pairing_orientation)
-        turned = pairing_orientation(table, vpair, shapes)
-        if turned is not None:
-            oriented = [turned, vpair]
-            vpair = _turned_back(turned, vpair, shapes, cfg)
+        oriented = pairing_orientation(table, vpair, shapes)
+        as_is_vpair = vpair
+        if oriented is not None:
+            vpair = _turned_back(oriented, vpair, shapes, cfg)
         crossed: list = []
         names = match_tracks_across_views(table, vpair, ambiguous=crossed)
         if oriented is not None:
             # the step's "before": the frames as they are, their tracks paired as they were
             t0 = table.copy()
-            _rename_markers(t0, [], pair[1], match_tracks_across_views(table, oriented[1]))
-            sub0, _ = _two_view_rows(t0, pair)
-            oriented[1] = (stereo_data(sub0, oriented[1]), oriented[1])
-            del t0, sub0
+            _rename_markers(t0, [], pair[1], match_tracks_across_views(table, as_is_vpair))
+            as_is_data = stereo_data(_two_view_rows(t0, pair)[0], as_is_vpair)
+            del t0
         if crossed:
             warnings.append(warning(
                 "cross-view-ambiguous",
@@ -1806,17 +1829,14 @@ def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, 
     sub, time_unit = _two_view_rows(table, pair)
     data = stereo_data(sub, vpair)
     if oriented is None:
-        turned = orientation_check(data, shapes)
-        if turned is not None:
-            oriented = [turned, (data, vpair)]
-            vpair = _turned_back(turned, vpair, shapes, cfg)
+        oriented = orientation_check(data, shapes)
+        if oriented is not None:
+            as_is_data = data
+            vpair = _turned_back(oriented, vpair, shapes, cfg)
             data = stereo_data(sub, vpair)
-    if oriented is not None:
-        from ..imaging.track_effects import stereo_fit
-        d0, _ = oriented[1]
-        as_is = stereo_fit(d0, StereoSpec(), max_offset_s=cfg.max_offset_s) if d0.markers else None
-        oriented = (oriented[0], as_is)
-    del sub
+    as_is = (stereo_fit(as_is_data, StereoSpec(), max_offset_s=cfg.max_offset_s)
+             if as_is_data is not None and as_is_data.markers else None)
+    del sub, as_is_data
     if det.parity == "none":
         # the frames can be searched again in windows, for the loop's track-capture
         data.windows = WindowSource({v: cfg.views[v] for v in pair}, {v: per_view_d[v] for v in pair},
@@ -1847,24 +1867,8 @@ def _stereo(table: pd.DataFrame, events: list[dict], warnings: list[dict], cfg, 
                 + " (seed each in both views under the same name to triangulate it)", log, markers=alone))
     loop_dict, fit, _ = close_stereo_loop(data, loop=cfg.loop, max_offset_s=cfg.max_offset_s)
     if oriented is not None:
-        _orientation_step(loop_dict, *oriented)
-        turned = oriented[0]
-        swapped = turned["orientation"] == "swapped"
-        what = (f"the frames of {turned['view']} look swapped against the calibration (each view's frames are the "
-                "other camera's)" if swapped else
-                f"{turned['view']}'s frames look {turned['orientation']} against the calibration")
-        done = ("each view was triangulated through the other's camera" if swapped else
-                "its positions were taken back to the calibration's orientation before triangulating")
-        warnings.append(warning(
-            "view-orientation",
-            f"track: {what} ({turned.get('measure', 'the median ray gap')} {turned['median_gap_as_is_mm']:.3g} mm "
-            f"as the frames are, {turned['median_gap_mm']:.3g} mm "
-            + ("with the views exchanged" if swapped else "with its positions turned back")
-            + f", over {turned['n_points']} two-view " + ("pairs" if "measure" in turned else "points")
-            + f"): {done} (the loop's view-orientation step); markers2d.csv and the XMALab/DLTdv files keep the "
-              "frames' own pixels and the views' names as given. Check that the frames were exported and named as "
-              "intended", log, view=turned["view"], orientation=turned["orientation"],
-            median_gap_as_is_mm=turned["median_gap_as_is_mm"], median_gap_mm=turned["median_gap_mm"]))
+        _orientation_step(loop_dict, oriented, as_is)
+        warnings.append(_orientation_warning(oriented))
     loop_dict["time_unit"] = time_unit
     if fit.spec.occlusion:
         # the loop's occlusion effect left these samples out of the 3-D points (a marker at the
