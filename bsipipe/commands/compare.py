@@ -409,14 +409,13 @@ def _time_series(results, table: pd.DataFrame, clock: dict, header: dict, fe_mes
         ok = loc.found & np.all(np.isfinite(u), axis=1)
         if not ok.any():
             continue
-        e = np.linalg.norm(u[ok] - mf.measured_mm[ok], axis=1)
-        names = [n for n, o in zip(mf.names, ok) if o]
-        pairs += list(zip(names, e))
+        keep = np.flatnonzero(ok)
+        e = np.linalg.norm(u[keep] - mf.measured_mm[keep], axis=1)
+        pairs += [(mf.names[j], float(ej)) for j, ej in zip(keep, e)]
         rows.append({"fe_result": i, "fe_time": float(r.time), "frame": f, "time_s": mf.time_s,
-                     "n_markers": len(names), "sigma_mm": float(np.sqrt(np.mean(e ** 2))),
-                     "markers": {n: {"model_mm": u[j].tolist(), "measured_mm": mf.measured_mm[j].tolist(),
-                                     "error_mm": float(np.linalg.norm(u[j] - mf.measured_mm[j]))}
-                                 for j, n in ((j, n) for j, (n, o) in enumerate(zip(mf.names, ok)) if o)}})
+                     "n_markers": len(keep), "sigma_mm": float(np.sqrt(np.mean(e ** 2))),
+                     "markers": {mf.names[j]: {"model_mm": u[j].tolist(), "measured_mm": mf.measured_mm[j].tolist(),
+                                               "error_mm": float(ej)} for j, ej in zip(keep, e)}})
     if not rows:
         return None
     err = np.array([e for _, e in pairs])
