@@ -49,18 +49,16 @@ def read_stereo_calibration(path: str | os.PathLike, views: Sequence[str],
     p = Path(path)
     suffix = p.suffix.lower()
     if suffix in OPENCV_SUFFIXES:
-        cal = _opencv(p, views, shapes or {})
-    elif suffix in BOUGUET_SUFFIXES:
-        cal = _bouguet(p, views)
-    else:
-        try:
-            with open(p, encoding="utf-8") as f:
-                return json.load(f)
-        except FileNotFoundError:
-            raise InputError("file not found", path=p) from None
-        except (OSError, ValueError) as e:
-            raise InputError(f"cannot read the calibration: {e}", path=p) from None
-    return cal
+        return _opencv(p, views, shapes or {})
+    if suffix in BOUGUET_SUFFIXES:
+        return _bouguet(p, views)
+    try:
+        with open(p, encoding="utf-8") as f:
+            return json.load(f)
+    except FileNotFoundError:
+        raise InputError("file not found", path=p) from None
+    except (OSError, ValueError) as e:
+        raise InputError(f"cannot read the calibration: {e}", path=p) from None
 
 
 def _pair(views: Sequence[str], path: Path, tool: str) -> tuple[str, str]:
@@ -99,7 +97,7 @@ def _stereo(R, T, a: str, b: str, path: Path) -> dict:
     return {"views": [a, b], "R": R.tolist(), "T_mm": T.tolist(), "rms_px": None}
 
 
-def _frame_size(shapes: Mapping, v: str, path: Path):
+def _frame_size(shapes: Mapping, v: str):
     s = shapes.get(v)
     return None if s is None else (int(s[1]), int(s[0]))
 
@@ -137,7 +135,7 @@ def _opencv(path: Path, views: Sequence[str], shapes: Mapping) -> dict:
                          "(intrinsics.yml of OpenCV's stereo_calib sample) and R, T (extrinsics.yml beside it)",
                          path=path)
     size = nodes.get("image_size", nodes.get("imageSize"))
-    sizes = {v: (tuple(np.asarray(size).ravel()[:2]) if size is not None else _frame_size(shapes, v, path))
+    sizes = {v: (tuple(np.asarray(size).ravel()[:2]) if size is not None else _frame_size(shapes, v))
              for v in (a, b)}
     return {"views": {a: _view(nodes["M1"], nodes["D1"], sizes[a], path, "1"),
                       b: _view(nodes["M2"], nodes["D2"], sizes[b], path, "2")},
