@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 
 .PHONY: install study test bench ccx clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml setup.py bsipipe/imaging/_kernels.c
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q -e '.[test,bench,workflow]'

@@ -334,6 +334,20 @@ def _gauss_kernel(sigma_px: float) -> np.ndarray:
     return cv2.getGaussianKernel(int(round(sigma_px * 8 + 1)) | 1, sigma_px, cv2.CV_32F)
 
 
+#: The version of ``_kernels.c`` this module calls (its ``KERNELS_VERSION``).
+KERNELS_VERSION = 1
+
+try:                                   # the compiled sub-pixel fits (setup.py builds them; optional)
+    from . import _kernels
+except ImportError:                    # pragma: no cover - not built: the NumPy versions
+    _kernels = None
+if _kernels is not None and getattr(_kernels, "VERSION", None) != KERNELS_VERSION:   # pragma: no cover
+    import warnings
+    warnings.warn(f"{_kernels.__file__} was built from another version of _kernels.c: the sub-pixel fits run in "
+                  f"NumPy (slower) until it is rebuilt (pip install -e . or make install)", RuntimeWarning,
+                  stacklevel=1)
+    _kernels = None
+
 try:                                   # the batched LAPACK solver np.linalg.solve wraps
     from numpy.linalg._umath_linalg import solve as _gesv
 except ImportError:                    # pragma: no cover - a NumPy without it
@@ -819,8 +833,22 @@ def _plane_removed(p: np.ndarray, geo: _Geo, sign: float, valid: np.ndarray | No
     The plane is fitted to the pixels of the outer ring (``valid`` ones only) that are
     background: first those within 3 robust sd of the ring's median level (a dark
     instrument or a bone edge reaching into the ring is left out from the start), then,
-    once more, those within 3 robust sd of the fitted plane.
+    once more, those within 3 robust sd of the fitted plane.  The compiled kernel where it
+    is built (:data:`_kernels`), else (and for a singular system) :func:`_plane_removed_numpy`.
     """
+    if _kernels is not None:
+        p = np.ascontiguousarray(p, dtype=np.float64)
+        out = np.empty_like(p)
+        singular = _kernels.plane_removed(p, p.shape[0], p.shape[1], geo.ring_idx, geo.dx, geo.dy,
+                                          None if valid is None else np.ascontiguousarray(valid, dtype=np.uint8),
+                                          float(sign), _MAD, float(_EYE3_TINY[0, 0]), out)
+        if not singular:
+            return out
+    return _plane_removed_numpy(p, geo, sign, valid)
+
+
+def _plane_removed_numpy(p: np.ndarray, geo: _Geo, sign: float, valid: np.ndarray | None) -> np.ndarray:
+    """:func:`_plane_removed` in NumPy (the reference the compiled kernel is tested against)."""
     A = geo.A_ring                                                     # (R, 3)
     r = p[:, geo.ring_idx]                                             # (N, R)
     w0 = None if valid is None else valid[:, geo.ring_idx]
@@ -975,49 +1003,20 @@ def _edge_background(p: np.ndarray, geo: _Geo, valid: np.ndarray | None, xy: np.
             hit = np.bincount(cell, minlength=n * R).reshape(n, R) > 0
             crowded = hit.mean(axis=1) > _EDGE_MAX_CROWDED
             w = w * ~hit
-    # the least-squares plane on the ring's pixels against their noise: where it leaves no
-    # more than noise (within 3 sd of a variance from this many pixels), nothing to look at
-    A = geo.A_ring
-    coef = _solve((w @ geo.AA_ring).reshape(-1, 3, 3) + _EYE3_TINY, ((w * pr) @ A)[:, :, None])[..., 0]
-    plane = coef @ A.T
-    m = w.sum(axis=1)
-    rssp = (w * (pr - plane) ** 2).sum(axis=1)
     if noise is None:
         # a Laplacian's robust sd over the ring: smooth structure does not enter it
         lap = p[:, gi - 1] + p[:, gi + 1] + p[:, gi - P] + p[:, gi + P] - 4.0 * p[:, gi]
         sig = _MAD * _row_median(np.abs(lap - _row_median(lap, None)[:, None]), None) / math.sqrt(20.0)
     else:
         sig = noise
-    dfp = np.maximum(m - 3.0, 1.0)
-    with np.errstate(all="ignore"):
-        look = (rssp / dfp > sig ** 2 * (1.0 + 3.0 * np.sqrt(2.0 / dfp))) & ~crowded & (m >= 20)
+    fit = _edge_fit_compiled(p, geo, valid, w, crowded, sig) if _kernels is not None else None
+    if fit is None:
+        fit = _edge_fit_numpy(p, geo, valid, w, pr, crowded, sig)
+    i, m, rssp, sig, c, cs, sn, rss1, k1, depth, span = fit
     out = np.zeros_like(p)
     chosen = np.zeros(n, bool)
-    if not look.any():
+    if len(i) == 0:
         return out, chosen
-    i = np.flatnonzero(look)
-    pi, pr, w, m, rssp, sig = p[i], pr[i], w[i], m[i], rssp[i], sig[i]
-    # the edge's normal: the main axis of the ring's gradients
-    gx = pi[:, gi + 1] - pi[:, gi - 1]
-    gy = pi[:, gi + P] - pi[:, gi - P]
-    wg = 1.0 if valid is None else valid[i][:, gi]
-    jxx = (wg * gx * gx).sum(axis=1)
-    jyy = (wg * gy * gy).sum(axis=1)
-    jxy = (wg * gx * gy).sum(axis=1)
-    th = 0.5 * np.arctan2(2.0 * jxy, jxx - jyy)
-    cs, sn = np.cos(th)[:, None], np.sin(th)[:, None]
-
-    def knots(dx, dy, rows):
-        """Each pixel's knot to its left (flat over the rows' knots) and its share of the next."""
-        us = (dx[None] * cs[rows] + dy[None] * sn[rows]) * (1.0 / _EDGE_KNOT_PX) + K
-        k0 = np.floor(us)
-        return k0.astype(np.intp) + (np.arange(len(us)) * nk)[:, None], us - k0
-
-    k, f = knots(geo.dx[ri], geo.dy[ri], slice(None))
-    c, reach_k = _hat_fit(k, f, w, pr, nk, pen)
-    bg = _hat_value(c, k, f)
-    rss1 = (w * (pr - bg) ** 2).sum(axis=1)
-    k1 = (reach_k > 0.5).sum(axis=1) + 1.0            # the knots the ring reaches, and the angle
     d1, d2 = np.maximum(k1 - 3.0, 1.0), np.maximum(m - k1, 1.0)
     with np.errstate(all="ignore"):
         F = ((rssp - rss1) / d1) / (rss1 / d2)
@@ -1027,17 +1026,92 @@ def _edge_background(p: np.ndarray, geo: _Geo, valid: np.ndarray | None, xy: np.
         # (4) the edge is no deeper across the ring than the marker itself (its plane-removed
         # depth within 1 px of the centre): an instrument's edge that dwarfs the marker is left
         # to the plane, as a profile of it could carve a marker-like blob out of the edge
-        depth = np.abs(coef[i] @ geo.A[geo.near1].T - pi[:, geo.near1]).max(axis=1)
-        on = w > 0
-        span = np.where(on, bg, -np.inf).max(axis=1) - np.where(on, bg, np.inf).min(axis=1)
         ok &= span <= _EDGE_MAX_RANGE * depth
     if not ok.any():
         return out, chosen
     sel = np.flatnonzero(ok)
     chosen[i[sel]] = True
-    k, f = knots(geo.dx, geo.dy, sel)
-    out[i[sel]] = _hat_value(c.reshape(-1, nk)[sel].reshape(-1), k, f)
+    k, f = _edge_knots(geo.dx, geo.dy, cs[sel], sn[sel], K, nk)
+    out[i[sel]] = _hat_value(c[sel].reshape(-1), k, f)
     return out, chosen
+
+
+def _edge_knots(dx: np.ndarray, dy: np.ndarray, cs: np.ndarray, sn: np.ndarray, K: int, nk: int):
+    """Each pixel's knot to its left (flat over the rows' knots) and its share of the next, for
+    rows whose edge normals are (``cs``, ``sn``) (N, 1), pixels at offsets ``dx, dy``."""
+    us = (dx[None] * cs + dy[None] * sn) * (1.0 / _EDGE_KNOT_PX) + K
+    k0 = np.floor(us)
+    return k0.astype(np.intp) + (np.arange(len(us)) * nk)[:, None], us - k0
+
+
+def _edge_fit_compiled(p, geo: _Geo, valid, w, crowded, sig):
+    """:func:`_edge_fit_numpy`'s values from the compiled kernel (None where a system was
+    singular or an angle not a number: then NumPy's path, which raises or goes on as before)."""
+    gi, K, nk, pen = _edge_geo(geo.key)
+    p = np.ascontiguousarray(p, dtype=np.float64)
+    n = len(p)
+    look = np.empty(n, np.uint8)
+    coef, c = np.empty((n, 3)), np.empty((n, nk))
+    m, rssp, cs, sn, rss1, k1, depth, span = (np.empty(n) for _ in range(8))
+    singular = _kernels.edge_fit(
+        p, n, p.shape[1], 2 * geo.half + 1, geo.ring_idx, gi, geo.near1, geo.dx, geo.dy,
+        np.ascontiguousarray(w, dtype=np.float64), crowded.astype(np.uint8),
+        None if valid is None else np.ascontiguousarray(valid, dtype=np.uint8),
+        np.ascontiguousarray(np.broadcast_to(np.asarray(sig, np.float64), (n,))), K, nk,
+        np.ascontiguousarray(pen, dtype=np.float64), _EDGE_KNOT_PX, float(_EYE3_TINY[0, 0]),
+        look, coef, m, rssp, c, cs, sn, rss1, k1, depth, span)
+    if singular:
+        return None
+    i = np.flatnonzero(look)
+    sig = np.broadcast_to(np.asarray(sig, np.float64), (n,))
+    return (i, m[i], rssp[i], sig[i], c[i], cs[i, None], sn[i, None], rss1[i], k1[i], depth[i], span[i])
+
+
+def _edge_fit_numpy(p, geo: _Geo, valid, w, pr, crowded, sig):
+    """The arithmetic of :func:`_edge_background` between its set-up and its decision, in NumPy
+    (the reference the compiled kernel is tested against): the rows ``i`` looked at and, for
+    them, the ring's weight ``m`` and plane residual ``rssp``, the noise, the profile's knots
+    ``c`` (rows, nk), the edge's normal (``cs``, ``sn``), the profile's residual ``rss1``, the
+    knots it reaches plus the angle ``k1``, the marker's depth under the plane and the
+    profile's range over the ring."""
+    n, PP = p.shape
+    P = 2 * geo.half + 1
+    gi, K, nk, pen = _edge_geo(geo.key)
+    ri = geo.ring_idx
+    # the least-squares plane on the ring's pixels against their noise: where it leaves no
+    # more than noise (within 3 sd of a variance from this many pixels), nothing to look at
+    A = geo.A_ring
+    coef = _solve((w @ geo.AA_ring).reshape(-1, 3, 3) + _EYE3_TINY, ((w * pr) @ A)[:, :, None])[..., 0]
+    plane = coef @ A.T
+    m = w.sum(axis=1)
+    rssp = (w * (pr - plane) ** 2).sum(axis=1)
+    dfp = np.maximum(m - 3.0, 1.0)
+    with np.errstate(all="ignore"):
+        look = (rssp / dfp > sig ** 2 * (1.0 + 3.0 * np.sqrt(2.0 / dfp))) & ~crowded & (m >= 20)
+    i = np.flatnonzero(look)
+    if len(i) == 0:
+        e = np.zeros(0)
+        return i, e, e, e, np.zeros((0, nk)), e[:, None], e[:, None], e, e, e, e
+    pi, pr, w, m, rssp, sig = p[i], pr[i], w[i], m[i], rssp[i], np.broadcast_to(sig, (n,))[i]
+    # the edge's normal: the main axis of the ring's gradients
+    gx = pi[:, gi + 1] - pi[:, gi - 1]
+    gy = pi[:, gi + P] - pi[:, gi - P]
+    wg = 1.0 if valid is None else valid[i][:, gi]
+    jxx = (wg * gx * gx).sum(axis=1)
+    jyy = (wg * gy * gy).sum(axis=1)
+    jxy = (wg * gx * gy).sum(axis=1)
+    th = 0.5 * np.arctan2(2.0 * jxy, jxx - jyy)
+    cs, sn = np.cos(th)[:, None], np.sin(th)[:, None]
+    k, f = _edge_knots(geo.dx[ri], geo.dy[ri], cs, sn, K, nk)
+    c, reach_k = _hat_fit(k, f, w, pr, nk, pen)
+    bg = _hat_value(c, k, f)
+    rss1 = (w * (pr - bg) ** 2).sum(axis=1)
+    k1 = (reach_k > 0.5).sum(axis=1) + 1.0            # the knots the ring reaches, and the angle
+    with np.errstate(all="ignore"):
+        depth = np.abs(coef[i] @ geo.A[geo.near1].T - pi[:, geo.near1]).max(axis=1)
+        on = w > 0
+        span = np.where(on, bg, -np.inf).max(axis=1) - np.where(on, bg, np.inf).min(axis=1)
+    return i, m, rssp, sig, c.reshape(-1, nk), cs, sn, rss1, k1, depth, span
 
 
 def _above_peak_excluded(s: np.ndarray, geo: _Geo, valid: np.ndarray | None) -> np.ndarray | None:
@@ -1069,7 +1143,20 @@ def _centroid(s: np.ndarray, geo: _Geo, n_iter: int = 6):
     """Iterated intensity-weighted centroid in a soft disc (1 inside ``radius``, 0 beyond
     ``radius + 1``: less pixel locking than a hard edge), on the pixels near the patch
     centre.  Returns offsets (N, 2) from the patch centre, the mass (sum of positive signal
-    in the disc) and the axis ratio of the second moments."""
+    in the disc) and the axis ratio of the second moments.  The compiled kernel where it is
+    built (:data:`_kernels`), else :func:`_centroid_numpy`: the same values to rounding."""
+    if _kernels is None:
+        return _centroid_numpy(s, geo, n_iter)
+    s = np.ascontiguousarray(s, dtype=np.float64)
+    n = s.shape[0]
+    c, m, elong = np.empty((n, 2)), np.empty(n), np.empty(n)
+    _kernels.centroid(s, n, s.shape[1], geo.support, geo.sup_xy[0], geo.sup_xy[1], geo.sup_w0, geo.radius,
+                      n_iter, c, m, elong)
+    return c, m, elong
+
+
+def _centroid_numpy(s: np.ndarray, geo: _Geo, n_iter: int = 6):
+    """:func:`_centroid` in NumPy (the reference the compiled kernel is tested against)."""
     sp = np.maximum(s[:, geo.support], 0.0)
     X, Y = geo.sup_xy[0], geo.sup_xy[1]
     n = s.shape[0]
@@ -1153,8 +1240,39 @@ def _radial_symmetry(s: np.ndarray, geo: _Geo, start: np.ndarray) -> np.ndarray:
 def _gaussian_fit(s: np.ndarray, geo: _Geo, start: np.ndarray, sigma0: float,
                   valid: np.ndarray | None = None, n_iter: int = 5):
     r"""Levenberg-Marquardt fit of :math:`A \exp(-((x-x_0)^2+(y-y_0)^2)/(2\sigma^2)) + c`
-    to every patch at once (batched 5x5 normal equations), on the pixels within
-    ``radius + 1`` of the start.  Returns (offsets (N, 2), amplitude, sigma, converged).
+    to every patch, on the pixels within ``radius + 1`` of the start.  Returns (offsets
+    (N, 2), amplitude, sigma, converged).  The compiled kernel where it is built
+    (:data:`_kernels`), else :func:`_gaussian_fit_numpy`: the same values to rounding (the
+    same steps, and the same stopping rule, taken over the whole batch)."""
+    if _kernels is None:
+        return _gaussian_fit_numpy(s, geo, start, sigma0, valid, n_iter)
+    n = len(start)
+    start = np.ascontiguousarray(start, dtype=np.float64)
+    reach = geo.radius + 1.0 + (float(np.hypot(start[:, 0], start[:, 1]).max()) if n else 0.0)
+    sel = geo.support_r <= reach + 1e-9
+    X = np.ascontiguousarray(geo.sup_xy[0, sel])
+    Y = np.ascontiguousarray(geo.sup_xy[1, sel])
+    P = np.empty((n, 5))
+    _kernels.gaussian_fit(np.ascontiguousarray(s, dtype=np.float64), n, s.shape[1], geo.support[sel], X, Y, start,
+                          None if valid is None else np.ascontiguousarray(valid, dtype=np.uint8),
+                          geo.radius, float(sigma0), float(geo.half), n_iter, P)
+    return _gaussian_result(P, geo, start)
+
+
+def _gaussian_result(P: np.ndarray, geo: _Geo, start: np.ndarray):
+    """(offsets, amplitude, sigma, converged) from the fitted parameters ``P`` (N, 5)."""
+    x0, y0, sig, amp = P[:, 0], P[:, 1], P[:, 2], P[:, 3]
+    # a width that ran into its bound (the patch's half side) is no marker's: the fit spread
+    # over something larger (an instrument's edge, a bone), whose "centre" means nothing
+    ok = (np.hypot(x0 - start[:, 0], y0 - start[:, 1]) < max(1.5, 0.5 * geo.radius)) & (amp > 0) & np.isfinite(x0) \
+        & (sig < geo.half)
+    return P[:, :2], amp, sig, ok
+
+
+def _gaussian_fit_numpy(s: np.ndarray, geo: _Geo, start: np.ndarray, sigma0: float,
+                        valid: np.ndarray | None = None, n_iter: int = 5):
+    r""":func:`_gaussian_fit` in NumPy (the reference the compiled kernel is tested against):
+    every patch at once, batched 5x5 normal equations.
 
     Every patch's model, residual and Jacobian are kept between iterations and written in
     place; a step's cost comes with its model (one pass), so an iteration is about thirty
@@ -1238,12 +1356,7 @@ def _gaussian_fit(s: np.ndarray, geo: _Geo, start: np.ndarray, sigma0: float,
                 lam = np.where(better, lam * 0.3, lam * 10.0)
                 if ((np.abs(step[:, :2]).max(axis=1) < 1e-3) | ~better).all() and (lam < 1e3).all():
                     break
-    x0, y0, sig, amp = P[:, 0], P[:, 1], P[:, 2], P[:, 3]
-    # a width that ran into its bound (the patch's half side) is no marker's: the fit spread
-    # over something larger (an instrument's edge, a bone), whose "centre" means nothing
-    ok = (np.hypot(x0 - start[:, 0], y0 - start[:, 1]) < max(1.5, 0.5 * geo.radius)) & (amp > 0) & np.isfinite(x0) \
-        & (sig < geo.half)
-    return P[:, :2], amp, sig, ok
+    return _gaussian_result(P, geo, start)
 
 
 #: Pixels this close to the intensifier field's edge (its half-level circle) or beyond are left
