@@ -252,6 +252,19 @@ def test_dicom_single_multiframe_and_monochrome1(tmp_path):
     assert np.array_equal(read_image(tmp_path / "inv.dcm"), 255 - b)
 
 
+def test_dicom_without_a_suffix_is_read_and_under_an_image_suffix_is_named(tmp_path):
+    """A DICOM file without a suffix (as scanners write them) is found by its preamble; one
+    named .png is not opened twice per frame to look for it, and its decoding fails with a
+    message that says what it is, naming the file (exit 2 in a command)."""
+    a = _ramp(dtype=np.uint16)
+    _write_dicom(tmp_path / "IM0001", a)
+    assert np.array_equal(read_image(tmp_path / "IM0001"), a)
+    (tmp_path / "IM0001").rename(tmp_path / "frame.png")
+    with pytest.raises(InputError, match=r"DICOM data in a file named \.png.*\.dcm") as e:
+        read_image(tmp_path / "frame.png")
+    assert "frame.png" in str(e.value)
+
+
 def test_dicom_compressed_multiframe(tmp_path):
     """Multi-frame DICOM with compressed pixel data, as C-arms and PACS export it: JPEG
     Lossless (process 14, selection value 1: the usual angiography syntax; its decoder is
