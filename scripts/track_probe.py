@@ -5,7 +5,8 @@
 EFFECT: ``none``, ``dust`` (25 static specks per view, 10 of them within a few px of the
 markers' paths, 35 % darker than the background: harsher than a bead), ``dust2`` (40 static
 bead-like specks per view scattered over the markers' region), ``lag05`` (cam2's
-intensifier lag: each frame half the previous), ``flicker`` (15 % frame-to-frame gain),
+intensifier lag: each frame half the previous), ``lag03both`` (both views averaged, y = 0.7 x
++ 0.3 y_prev: a lag they share), ``flicker`` (15 % frame-to-frame gain),
 ``interlace`` (odd lines from the previous frame), ``saltpepper`` (2,000 impulse pixels per
 frame), ``late`` (cam2 starts 6 frames late), ``invert`` (bright beads), ``vignette``
 (brightness falling to 35 % at the field's edge; applied to the recorded frames, so the air
@@ -58,9 +59,9 @@ def dust(v, imgs):
         out.append(np.clip(f, 0, 255).astype(np.uint8))
     return out
 
-def lag(a):
+def lag(a, views=("cam2",)):
     def fx(v, imgs):
-        if v != "cam2": return imgs
+        if v not in views: return imgs
         out, acc = [], None
         for im in imgs:
             acc = im.astype(np.float32) if acc is None else (1 - a) * im + a * acc
@@ -190,7 +191,7 @@ def same(v, imgs):
 FORMATS = {"jpeg": ".jpg", "mp4": ".mp4", "mjpg": ".avi"}
 
 EFFECTS = {"grid": grid, "glare": glare, "abc": abc, "jpeg": same, "mp4": same, "mjpg": same, "log": logimg, "invert": invert, "vignette": vignette, "noise2": noise2, "bits16": bits16, "blur": blur, "dup": dup,
-           "dust2": dust2, "late": late, "none": lambda v, i: i, "dust": dust, "lag05": lag(0.5), "flicker": flicker, "interlace": interlace,
+           "dust2": dust2, "late": late, "none": lambda v, i: i, "dust": dust, "lag05": lag(0.5), "lag03both": lag(0.3, ("cam1", "cam2")), "flicker": flicker, "interlace": interlace,
            "saltpepper": saltpepper, "blank": blank, "burnin": burnin}
 
 
@@ -205,6 +206,14 @@ def err3d(synth: Path, track: Path) -> None:
         q = p.dropna(subset=cols)
         q = q[q["marker"].isin(traj)]
         T = np.array([traj[m][f] for m, f in zip(q["marker"], q["frame"])]) @ R1.T + t1
+        if q["time_s"].notna().all():
+            # the truth where the points are dated (time_s, frames at 4 frames/s): a lag put right
+            fq = q["time_s"].to_numpy() * 4.0
+            Tt = np.array([[np.interp(fk, np.arange(len(traj[m])), np.asarray(traj[m])[:, k]) for k in range(3)]
+                           for m, fk in zip(q["marker"], fq)]) @ R1.T + t1
+            et = np.linalg.norm(q[cols].to_numpy() - Tt, axis=1)
+            print(f"{cols[0]}: 3-D RMS against the truth at time_s {np.sqrt(np.mean(et ** 2)):.4f} mm "
+                  f"(max {et.max():.4f})")
         X = q[cols].to_numpy()
         e0 = np.linalg.norm(X - T, axis=1)
         mx, mt = X.mean(0), T.mean(0)

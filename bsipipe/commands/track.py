@@ -159,6 +159,9 @@ class TrackConfig(StrictModel):
                                            "maximum likelihood) and triangulate the smoothed centres; the raw "
                                            "values stay (x_px, y_px; x_mm_raw, ...)")
     max_offset_s: PositiveFloat | None = Field(None, description="search range of the view time offset")
+    correct_lag: bool = Field(True, description="frames averaged over time (frames-averaged: image-intensifier lag, "
+                                                "a recursive noise filter) in losslessly stored views: markers3d.csv's "
+                                                "time_s moved back by the average's lag, rho / (1 - rho) frames")
     max_ray_gap_mm: PositiveFloat | None = Field(0.5, description="flag two-view points whose rays pass further "
                                                  "apart (also any above 5x the sequence's median ray gap)")
     detection: DetectionConfig = DetectionConfig()
@@ -1121,6 +1124,57 @@ def _lag_warning(info: dict, views) -> dict | None:
           "correlated, so the stated sds, smoothed ones most, are too small. Switch the temporal filter off "
           "(or record the last-image-hold frames without it) for motion measurements",
         log, views={v: t for v, t in hit.items()})
+
+
+def _lag_correction(info: dict, table: pd.DataFrame, pair, points3d: pd.DataFrame, fit, cfg) -> dict | None:
+    r"""``frames-averaged`` put right in time: where a calibrated view's frames are a recursive
+    average :math:`y_t = (1-\rho) x_t + \rho y_{t-1}` of what the C-arm saw (its noise correlated
+    from frame to frame, :func:`_temporal_noise`), a marker moving at a steady speed is imaged
+    where it was :math:`\rho/(1-\rho)` frames before (the average's delay), in both views alike,
+    where the ray gaps cannot see it.  The 3-D points keep their positions and are dated by when
+    the marker was there: ``time_s`` moved back by that lag -- the lag of the first view where
+    the loop paired the views through a view-time-offset (the second view then follows the
+    first's clock, its own lag in the offset), else the views' mean.  Not where the frames were
+    stored lossily (a codec's prediction between frames correlates their noise without delaying
+    the picture), without a clock, or with ``correct_lag: false``.  Changes ``points3d`` in
+    place; returns what was done for track.json (None where no view is averaged)."""
+    lags = {}
+    for v in pair:
+        t = (info.get(v) or {}).get("temporal_noise") or {}
+        averaged = bool(t.get("consistent")) and (t.get("rho") or 0.0) >= LAG_RHO \
+            and t.get("n_triples", 0) >= LAG_MIN_TRIPLES
+        lags[v] = float(t["lag_frames"]) if averaged else 0.0
+    if not any(lags.values()):
+        return None
+    out = {"views": {v: {"rho": (info[v].get("temporal_noise") or {}).get("rho"), "lag_frames": lags[v]}
+                     for v in pair}}
+    offset = (fit.params.get("view_time_offset_s") if fit is not None else None) is not None
+    lag = lags[pair[0]] if offset else float(np.mean([lags[v] for v in pair]))
+    out["lag_frames"] = lag
+    out["rule"] = (f"the first view's lag ({pair[0]}: the loop paired the views through a view-time-offset)" if offset
+                   else "the mean of the views' lags")
+    from ..io.images import lossy_compression
+    lossy = {v: c for v in pair if lags[v] and (c := lossy_compression(cfg.views[v])) is not None}
+    a = table[table["view"] == pair[0]][["frame", "time_s"]].drop_duplicates("frame").sort_values("frame")
+    ok = np.isfinite(a["time_s"].to_numpy(float))
+    why = ("correct_lag is false" if not cfg.correct_lag else
+           f"only {', '.join(v for v in pair if lags[v])}'s frames are averaged: the loop's view-time-offset holds "
+           f"that lag, and the points follow {pair[0]}'s clock" if lag == 0.0 else
+           "frames stored lossily (" + ", ".join(f"{v}: {c}" for v, c in lossy.items()) + "): a codec's prediction "
+           "between frames correlates their noise without delaying the picture" if lossy else
+           "no clock (neither time stamps nor a frame rate): the points are dated by frame only"
+           if ok.sum() < 2 else None)
+    if why is not None:
+        out.update(applied=False, shift_s=0.0, why_not=why)
+        return out
+    f, t = a["frame"].to_numpy(float)[ok], a["time_s"].to_numpy(float)[ok]
+    period = float(np.median(np.diff(t) / np.diff(f)))
+    shift = lag * period
+    points3d["time_s"] = points3d["time_s"] - shift
+    out.update(applied=True, frame_period_s=period, shift_s=shift)
+    log.info("track: frames averaged over time put right: markers3d.csv's time_s moved back by %.4g s (%.3g frame: %s)",
+             shift, lag, out["rule"])
+    return out
 
 
 def _rename_markers(table: pd.DataFrame, events: list[dict], view: str, names: dict) -> None:
@@ -2156,7 +2210,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     warnings += more
 
     st = None
-    points3d = fit = None
+    points3d = fit = lag_fix = None
     unpaired_names = None
     if rig is None and seed_df is None and len(views) > 1:
         # automatic tracks without a calibration: each view names its own, and nothing pairs
@@ -2199,6 +2253,15 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         warnings += _ray_gap_warnings(points3d, cfg.max_ray_gap_mm)
         if seed_df is None:
             warnings += _pairing_suspects(points3d)
+        lag_fix = _lag_correction(info, table, pair, points3d, fit, cfg)
+        if lag_fix is not None:
+            for w in warnings:
+                if w["code"] == "frames-averaged":
+                    w["message"] += (f"; markers3d.csv's time_s is moved back by {lag_fix['shift_s']:.4g} s "
+                                     f"({lag_fix['lag_frames']:.3g} frame), to when the markers were where the "
+                                     f"frames show them (correct_lag)" if lag_fix["applied"] else
+                                     f"; markers3d.csv's time_s is left as stamped: {lag_fix['why_not']}")
+                    w["lag_correction"] = lag_fix
 
     rs = ResultSet(out, primary="track.json", outputs=TRACK_OUTPUTS)
     cols2d = ["view", "frame", "marker", "x_px", "y_px", "time_s", "found", "status", "snr", "amplitude",
@@ -2232,6 +2295,8 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         result["cross_view_names"] = unpaired_names
     if smoothing is not None:
         result["smoothing"] = smoothing
+    if points3d is not None and lag_fix is not None:
+        result["lag_correction"] = lag_fix
     if points3d is not None:
         loop_dict = st["loop"]
         cols3d = ["frame", "time_s", "marker", "x_mm", "y_mm", "z_mm", "ray_gap_mm", "ray_gap_signed_mm",

@@ -44,6 +44,52 @@ static int get_buffer(PyObject *obj, Py_buffer *view, Py_ssize_t itemsize, Py_ss
     return 0;
 }
 
+/* LAPACK dgesv's method on one k x k system: LU with partial pivoting (idamax's choice: the
+ * first largest |a| of the column, NaN never), then the two triangular solves; in place (A
+ * row-major k x k, b overwritten by the solution).  Returns 1 where a pivot is exactly zero
+ * (LAPACK's "singular": np.linalg.solve raises LinAlgError), else 0. */
+static int solve_n(double *A, double *b, int k)
+{
+    for (int j = 0; j < k; j++) {
+        int p = j;
+        double best = fabs(A[j * k + j]);
+        for (int r = j + 1; r < k; r++) {
+            double v = fabs(A[r * k + j]);
+            if (v > best) {
+                best = v;
+                p = r;
+            }
+        }
+        if (A[p * k + j] == 0.0)
+            return 1;
+        if (p != j) {
+            for (int c = 0; c < k; c++) {
+                double t = A[j * k + c];
+                A[j * k + c] = A[p * k + c];
+                A[p * k + c] = t;
+            }
+            double t = b[j];
+            b[j] = b[p];
+            b[p] = t;
+        }
+        double inv = 1.0 / A[j * k + j];
+        for (int r = j + 1; r < k; r++) {
+            double f = A[r * k + j] * inv;
+            A[r * k + j] = f;
+            for (int c = j + 1; c < k; c++)
+                A[r * k + c] -= f * A[j * k + c];
+            b[r] -= f * b[j];
+        }
+    }
+    for (int r = k - 1; r >= 0; r--) {
+        double v = b[r];
+        for (int c = r + 1; c < k; c++)
+            v -= A[r * k + c] * b[c];
+        b[r] = v / A[r * k + r];
+    }
+    return 0;
+}
+
 /* centroid(s, n, PP, support, X, Y, w0, radius, n_iter, c_out, m_out, elong_out)
  *
  * s (n, PP) patches; support (K,) intp indices into a patch; X, Y, w0 (K,); outputs c (n, 2),
@@ -91,6 +137,7 @@ static PyObject *centroid(PyObject *self, PyObject *args)
         PyErr_NoMemory();
         goto done;
     }
+    Py_BEGIN_ALLOW_THREADS                     /* no Python object is touched below */
     {
         const double *s = (const double *)b_s.buf, *X = (const double *)b_X.buf, *Y = (const double *)b_Y.buf;
         const double *w0 = (const double *)b_w0.buf;
@@ -158,6 +205,7 @@ static PyObject *centroid(PyObject *self, PyObject *args)
             eout[i] = sqrt((tr / 2 + disc) / lo);
         }
     }
+    Py_END_ALLOW_THREADS
     Py_INCREF(Py_None);
     ret = Py_None;
 done:
@@ -171,51 +219,6 @@ done:
     if (got >= 2) PyBuffer_Release(&b_X);
     if (got >= 1) PyBuffer_Release(&b_s);
     return ret;
-}
-
-/* LAPACK dgesv's method on one 5 x 5 system: LU with partial pivoting (the first largest
- * |a| of the column), then the two triangular solves.  Returns 1 where a pivot is exactly
- * zero (LAPACK's "singular": np.linalg.solve raises LinAlgError), else 0. */
-static int solve5(double A[5][5], double b[5], double x[5])
-{
-    for (int j = 0; j < 5; j++) {
-        int p = j;                                   /* idamax: the first largest |a| (NaN never wins) */
-        double best = fabs(A[j][j]);
-        for (int r = j + 1; r < 5; r++) {
-            double v = fabs(A[r][j]);
-            if (v > best) {
-                best = v;
-                p = r;
-            }
-        }
-        if (A[p][j] == 0.0)
-            return 1;
-        if (p != j) {
-            for (int c = 0; c < 5; c++) {
-                double t = A[j][c];
-                A[j][c] = A[p][c];
-                A[p][c] = t;
-            }
-            double t = b[j];
-            b[j] = b[p];
-            b[p] = t;
-        }
-        double inv = 1.0 / A[j][j];
-        for (int r = j + 1; r < 5; r++) {
-            double f = A[r][j] * inv;
-            A[r][j] = f;
-            for (int c = j + 1; c < 5; c++)
-                A[r][c] -= f * A[j][c];
-            b[r] -= f * b[j];
-        }
-    }
-    for (int r = 4; r >= 0; r--) {
-        double v = b[r];
-        for (int c = r + 1; c < 5; c++)
-            v -= A[r][c] * x[c];
-        x[r] = v / A[r][r];
-    }
-    return 0;
 }
 
 /* the model's values at parameters p (x0, y0, sigma, amplitude, offset) over one patch's K
@@ -289,6 +292,7 @@ static PyObject *gaussian_fit(PyObject *self, PyObject *args)
         PyErr_NoMemory();
         goto done;
     }
+    Py_BEGIN_ALLOW_THREADS                     /* no Python object is touched below */
     {
         const double *s = (const double *)b_s.buf, *X = (const double *)b_X.buf, *Y = (const double *)b_Y.buf;
         const double *start = (const double *)b_start.buf;
@@ -349,7 +353,8 @@ static PyObject *gaussian_fit(PyObject *self, PyObject *args)
                 }
                 for (int a = 0; a < 5; a++)
                     H[a][a] += lam[i] * (H[a][a] + 1e-12);
-                singular = solve5(H, gv, step + 5 * i);
+                singular = solve_n(&H[0][0], gv, 5);
+                memcpy(step + 5 * i, gv, sizeof gv);
             }
             if (singular)
                 break;                                  /* np.linalg.solve's LinAlgError */
@@ -381,6 +386,7 @@ static PyObject *gaussian_fit(PyObject *self, PyObject *args)
                 break;
         }
     }
+    Py_END_ALLOW_THREADS
     Py_INCREF(Py_None);
     ret = Py_None;
 done:
@@ -445,49 +451,6 @@ static double masked_median(const double *v, const unsigned char *mask, Py_ssize
     return 0.5 * (vl + vh);
 }
 
-/* LAPACK dgesv's method on one 3 x 3 system; 1 where a pivot is exactly zero */
-static int solve3(double A[3][3], double b[3], double x[3])
-{
-    for (int j = 0; j < 3; j++) {
-        int p = j;
-        double best = fabs(A[j][j]);
-        for (int r = j + 1; r < 3; r++) {
-            double v = fabs(A[r][j]);
-            if (v > best) {
-                best = v;
-                p = r;
-            }
-        }
-        if (A[p][j] == 0.0)
-            return 1;
-        if (p != j) {
-            for (int c = 0; c < 3; c++) {
-                double t = A[j][c];
-                A[j][c] = A[p][c];
-                A[p][c] = t;
-            }
-            double t = b[j];
-            b[j] = b[p];
-            b[p] = t;
-        }
-        double inv = 1.0 / A[j][j];
-        for (int r = j + 1; r < 3; r++) {
-            double f = A[r][j] * inv;
-            A[r][j] = f;
-            for (int c = j + 1; c < 3; c++)
-                A[r][c] -= f * A[j][c];
-            b[r] -= f * b[j];
-        }
-    }
-    for (int r = 2; r >= 0; r--) {
-        double v = b[r];
-        for (int c = r + 1; c < 3; c++)
-            v -= A[r][c] * x[c];
-        x[r] = v / A[r][r];
-    }
-    return 0;
-}
-
 /* plane_removed(p, n, PP, ring, dx, dy, valid, sign, mad_scale, tiny, out) -> bool
  *
  * p (n, PP) raw patches; ring (R,) intp indices of the ring pixels; dx, dy (PP,) pixel offsets;
@@ -534,6 +497,7 @@ static PyObject *plane_removed(PyObject *self, PyObject *args)
         PyErr_NoMemory();
         goto done;
     }
+    Py_BEGIN_ALLOW_THREADS                     /* no Python object is touched below */
     {
         const double *P = (const double *)b_p.buf, *DX = (const double *)b_dx.buf, *DY = (const double *)b_dy.buf;
         const unsigned char *valid = has_valid ? (const unsigned char *)b_valid.buf : NULL;
@@ -569,10 +533,11 @@ static PyObject *plane_removed(PyObject *self, PyObject *args)
                 }
                 for (int u = 0; u < 3; u++)
                     M[u][u] += tiny;
-                if (solve3(M, b, coef)) {
+                if (solve_n(&M[0][0], b, 3)) {
                     singular = 1;
                     break;
                 }
+                memcpy(coef, b, sizeof coef);
                 if (it == 1)
                     break;
                 for (Py_ssize_t j = 0; j < R; j++)
@@ -603,6 +568,7 @@ static PyObject *plane_removed(PyObject *self, PyObject *args)
             }
         }
     }
+    Py_END_ALLOW_THREADS
     ret = PyBool_FromLong(singular);
 done:
     free(work);
@@ -613,51 +579,6 @@ done:
     if (got >= 2) PyBuffer_Release(&b_dx);
     if (got >= 1) PyBuffer_Release(&b_p);
     return ret;
-}
-
-/* LU with partial pivoting (idamax's choice) and the two triangular solves of one k x k
- * system, in place (A row-major k x k, b overwritten by the solution); 1 where a pivot is
- * exactly zero (LAPACK's "singular") */
-static int solve_n(double *A, double *b, int k)
-{
-    for (int j = 0; j < k; j++) {
-        int p = j;
-        double best = fabs(A[j * k + j]);
-        for (int r = j + 1; r < k; r++) {
-            double v = fabs(A[r * k + j]);
-            if (v > best) {
-                best = v;
-                p = r;
-            }
-        }
-        if (A[p * k + j] == 0.0)
-            return 1;
-        if (p != j) {
-            for (int c = 0; c < k; c++) {
-                double t = A[j * k + c];
-                A[j * k + c] = A[p * k + c];
-                A[p * k + c] = t;
-            }
-            double t = b[j];
-            b[j] = b[p];
-            b[p] = t;
-        }
-        double inv = 1.0 / A[j * k + j];
-        for (int r = j + 1; r < k; r++) {
-            double f = A[r * k + j] * inv;
-            A[r * k + j] = f;
-            for (int c = j + 1; c < k; c++)
-                A[r * k + c] -= f * A[j * k + c];
-            b[r] -= f * b[j];
-        }
-    }
-    for (int r = k - 1; r >= 0; r--) {
-        double v = b[r];
-        for (int c = r + 1; c < k; c++)
-            v -= A[r * k + c] * b[c];
-        b[r] = v / A[r * k + r];
-    }
-    return 0;
 }
 
 /* edge_fit(p, n, PP, P, ring, gi, near1, dx, dy, w, crowded, valid, sig, K, nk, pen, knot_px, tiny,
@@ -717,6 +638,9 @@ static PyObject *edge_fit(PyObject *self, PyObject *args)
     for (Py_ssize_t j = 0; j < Q; j++)
         if (near1[j] < 0 || near1[j] >= PP) { PyErr_SetString(PyExc_IndexError, "centre pixel outside the patch"); goto fail_valid; }
     if (nk < 2) { PyErr_SetString(PyExc_ValueError, "fewer than two knots"); goto fail_valid; }
+    work = (double *)malloc(sizeof(double) * ((size_t)R * 3 + (size_t)nk * 8 + (size_t)nk * nk + 1));
+    if (!work) { PyErr_NoMemory(); goto fail_valid; }
+    Py_BEGIN_ALLOW_THREADS                         /* no Python object is touched below */
     {
         const double *pp = (const double *)b[3].buf, *DX = (const double *)b[4].buf, *DY = (const double *)b[5].buf;
         const double *W = (const double *)b[6].buf, *sig = (const double *)b[8].buf, *pen = (const double *)b[9].buf;
@@ -729,8 +653,6 @@ static PyObject *edge_fit(PyObject *self, PyObject *args)
         double *span = (double *)b[20].buf;
         const size_t nkk = (size_t)nk;
         /* per ring pixel: its knot, fraction, bg; per knot: d (two parts), off, rhs (two), reach (two); M */
-        work = (double *)malloc(sizeof(double) * ((size_t)R * 3 + nkk * 8 + nkk * nkk + 1));
-        if (!work) { PyErr_NoMemory(); goto fail_valid; }
         double *kf = work, *fr = kf + R, *bg = fr + R;
         double *dA = bg + R, *dB = dA + nk, *off = dB + nk, *rA = off + nk, *rB = rA + nk, *qA = rB + nk, *qB = qA + nk;
         double *M = qB + nk, *rhs = M + nkk * nkk;
@@ -752,7 +674,8 @@ static PyObject *edge_fit(PyObject *self, PyObject *args)
             }
             for (int u = 0; u < 3; u++)
                 A3[u][u] += tiny;
-            if (solve3(A3, b3, cf)) { singular = 1; break; }
+            if (solve_n(&A3[0][0], b3, 3)) { singular = 1; break; }
+            memcpy(cf, b3, sizeof cf);
             double rp = 0.0;
             for (Py_ssize_t j = 0; j < R; j++) {
                 double pl = (cf[0] + cf[1] * DX[ring[j]]) + cf[2] * DY[ring[j]];
@@ -849,6 +772,7 @@ static PyObject *edge_fit(PyObject *self, PyObject *args)
             depth[i] = dnan ? NAN : dp;
         }
     }
+    Py_END_ALLOW_THREADS
     ret = PyBool_FromLong(singular);
 fail_valid:
     if (has_valid) PyBuffer_Release(&b_valid);
