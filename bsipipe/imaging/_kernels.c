@@ -29,17 +29,57 @@ static inline double clampd(double x, double lo, double hi)
     return x;
 }
 
-static int get_buffer(PyObject *obj, Py_buffer *view, Py_ssize_t itemsize, Py_ssize_t count,
-                      int writable, const char *name)
+/* One array argument: the object, its item size, its number of items (-1: any number, for the
+ * index arrays whose lengths size the rest), writable or not, None allowed or not, its name
+ * for the error message. */
+typedef struct {
+    PyObject *o;
+    Py_ssize_t item, count;
+    int writable, optional;
+    const char *name;
+} Arg;
+
+#define IDX ((Py_ssize_t)sizeof(Py_ssize_t))
+
+/* Release b[0..m) (a buffer never acquired, zeroed, is skipped by PyBuffer_Release). */
+static void release(Py_buffer *b, int m)
 {
-    int flags = PyBUF_C_CONTIGUOUS | (writable ? PyBUF_WRITABLE : 0);
-    if (PyObject_GetBuffer(obj, view, flags) < 0)
-        return -1;
-    if (view->itemsize != itemsize || view->len != itemsize * count) {
-        PyErr_Format(PyExc_ValueError, "%s: expected %zd items of %zd bytes, got %zd bytes of %zd-byte items",
-                     name, count, itemsize, view->len, view->itemsize);
-        PyBuffer_Release(view);
-        return -1;
+    for (int q = 0; q < m; q++)
+        PyBuffer_Release(&b[q]);
+}
+
+/* Acquire args[0..m) into b[0..m): C-contiguous, their item sizes and counts checked; an
+ * optional None is left as a zeroed buffer (.buf NULL).  On failure the ones already held
+ * are released and -1 returned with the exception set. */
+static int acquire(const Arg *args, int m, Py_buffer *b)
+{
+    memset(b, 0, sizeof(Py_buffer) * (size_t)m);
+    for (int q = 0; q < m; q++) {
+        const Arg *a = &args[q];
+        if (a->optional && a->o == Py_None)
+            continue;
+        if (PyObject_GetBuffer(a->o, &b[q], PyBUF_C_CONTIGUOUS | (a->writable ? PyBUF_WRITABLE : 0)) < 0) {
+            release(b, q);
+            return -1;
+        }
+        if (b[q].itemsize != a->item || (a->count >= 0 && b[q].len != a->item * a->count)) {
+            PyErr_Format(PyExc_ValueError, "%s: expected %zd items of %zd bytes, got %zd bytes of %zd-byte items",
+                         a->name, a->count, a->item, b[q].len, b[q].itemsize);
+            release(b, q + 1);
+            return -1;
+        }
+    }
+    return 0;
+}
+
+/* 0 where every index in idx[0..k) lies in [lo, hi); else -1 with an IndexError naming them */
+static int indices_within(const Py_ssize_t *idx, Py_ssize_t k, Py_ssize_t lo, Py_ssize_t hi, const char *what)
+{
+    for (Py_ssize_t j = 0; j < k; j++) {
+        if (idx[j] < lo || idx[j] >= hi) {
+            PyErr_Format(PyExc_IndexError, "%s index outside the patch", what);
+            return -1;
+        }
     }
     return 0;
 }
@@ -103,35 +143,23 @@ static PyObject *centroid(PyObject *self, PyObject *args)
     if (!PyArg_ParseTuple(args, "OnnOOOOdiOOO", &o_s, &n, &PP, &o_sup, &o_X, &o_Y, &o_w0, &radius, &n_iter,
                           &o_c, &o_m, &o_e))
         return NULL;
-    Py_buffer b_sup;
-    if (PyObject_GetBuffer(o_sup, &b_sup, PyBUF_C_CONTIGUOUS) < 0)
+    Py_buffer ix[1], b[7];
+    const Arg idx[] = {{o_sup, IDX, -1, 0, 0, "support"}};
+    if (acquire(idx, 1, ix) < 0)
         return NULL;
-    K = b_sup.len / (Py_ssize_t)sizeof(Py_ssize_t);
-    Py_buffer b_s, b_X, b_Y, b_w0, b_c, b_m, b_e;
-    int got = 0;
+    K = ix[0].len / IDX;
+    const Arg arr[] = {{o_s, 8, n * PP, 0, 0, "s"}, {o_X, 8, K, 0, 0, "X"}, {o_Y, 8, K, 0, 0, "Y"},
+                       {o_w0, 8, K, 0, 0, "w0"}, {o_c, 8, 2 * n, 1, 0, "c"}, {o_m, 8, n, 1, 0, "m"},
+                       {o_e, 8, n, 1, 0, "elong"}};
+    if (acquire(arr, 7, b) < 0) {
+        release(ix, 1);
+        return NULL;
+    }
     PyObject *ret = NULL;
     double *work = NULL;
-    if (get_buffer(o_s, &b_s, 8, n * PP, 0, "s") < 0) goto done;
-    got = 1;
-    if (get_buffer(o_X, &b_X, 8, K, 0, "X") < 0) goto done;
-    got = 2;
-    if (get_buffer(o_Y, &b_Y, 8, K, 0, "Y") < 0) goto done;
-    got = 3;
-    if (get_buffer(o_w0, &b_w0, 8, K, 0, "w0") < 0) goto done;
-    got = 4;
-    if (get_buffer(o_c, &b_c, 8, 2 * n, 1, "c") < 0) goto done;
-    got = 5;
-    if (get_buffer(o_m, &b_m, 8, n, 1, "m") < 0) goto done;
-    got = 6;
-    if (get_buffer(o_e, &b_e, 8, n, 1, "elong") < 0) goto done;
-    got = 7;
-    const Py_ssize_t *sup = (const Py_ssize_t *)b_sup.buf;
-    for (Py_ssize_t k = 0; k < K; k++) {
-        if (sup[k] < 0 || sup[k] >= PP) {
-            PyErr_SetString(PyExc_IndexError, "support index outside the patch");
-            goto done;
-        }
-    }
+    const Py_ssize_t *sup = (const Py_ssize_t *)ix[0].buf;
+    if (indices_within(sup, K, 0, PP, "support") < 0)
+        goto done;
     work = (double *)malloc(sizeof(double) * (size_t)(K > 0 ? 4 * K : 1));
     if (!work) {
         PyErr_NoMemory();
@@ -139,9 +167,9 @@ static PyObject *centroid(PyObject *self, PyObject *args)
     }
     Py_BEGIN_ALLOW_THREADS                     /* no Python object is touched below */
     {
-        const double *s = (const double *)b_s.buf, *X = (const double *)b_X.buf, *Y = (const double *)b_Y.buf;
-        const double *w0 = (const double *)b_w0.buf;
-        double *cout = (double *)b_c.buf, *mout = (double *)b_m.buf, *eout = (double *)b_e.buf;
+        const double *s = (const double *)b[0].buf, *X = (const double *)b[1].buf, *Y = (const double *)b[2].buf;
+        const double *w0 = (const double *)b[3].buf;
+        double *cout = (double *)b[4].buf, *mout = (double *)b[5].buf, *eout = (double *)b[6].buf;
         double *sp = work, *w = work + K, *ddx = work + 2 * K, *ddy = work + 3 * K;
         const double r1 = radius + 1.0, lim = 1.5;
         for (Py_ssize_t i = 0; i < n; i++) {
@@ -210,14 +238,8 @@ static PyObject *centroid(PyObject *self, PyObject *args)
     ret = Py_None;
 done:
     free(work);
-    PyBuffer_Release(&b_sup);
-    if (got >= 7) PyBuffer_Release(&b_e);
-    if (got >= 6) PyBuffer_Release(&b_m);
-    if (got >= 5) PyBuffer_Release(&b_c);
-    if (got >= 4) PyBuffer_Release(&b_w0);
-    if (got >= 3) PyBuffer_Release(&b_Y);
-    if (got >= 2) PyBuffer_Release(&b_X);
-    if (got >= 1) PyBuffer_Release(&b_s);
+    release(b, 7);
+    release(ix, 1);
     return ret;
 }
 
@@ -257,33 +279,23 @@ static PyObject *gaussian_fit(PyObject *self, PyObject *args)
     if (!PyArg_ParseTuple(args, "OnnOOOOOdddiO", &o_s, &n, &PP, &o_sup, &o_X, &o_Y, &o_start, &o_valid, &radius,
                           &sigma0, &lim_sig, &n_iter, &o_P))
         return NULL;
-    Py_buffer b_sup;
-    if (PyObject_GetBuffer(o_sup, &b_sup, PyBUF_C_CONTIGUOUS) < 0)
+    Py_buffer ix[1], b[6];
+    const Arg idx[] = {{o_sup, IDX, -1, 0, 0, "support"}};
+    if (acquire(idx, 1, ix) < 0)
         return NULL;
-    K = b_sup.len / (Py_ssize_t)sizeof(Py_ssize_t);
-    Py_buffer b_s, b_X, b_Y, b_start, b_valid, b_P;
-    int got = 0, has_valid = (o_valid != Py_None);
+    K = ix[0].len / IDX;
+    const Arg arr[] = {{o_s, 8, n * PP, 0, 0, "s"}, {o_X, 8, K, 0, 0, "X"}, {o_Y, 8, K, 0, 0, "Y"},
+                       {o_start, 8, 2 * n, 0, 0, "start"}, {o_valid, 1, n * PP, 0, 1, "valid"},
+                       {o_P, 8, 5 * n, 1, 0, "P"}};
+    if (acquire(arr, 6, b) < 0) {
+        release(ix, 1);
+        return NULL;
+    }
     PyObject *ret = NULL;
     double *work = NULL;
-    if (get_buffer(o_s, &b_s, 8, n * PP, 0, "s") < 0) goto done;
-    got = 1;
-    if (get_buffer(o_X, &b_X, 8, K, 0, "X") < 0) goto done;
-    got = 2;
-    if (get_buffer(o_Y, &b_Y, 8, K, 0, "Y") < 0) goto done;
-    got = 3;
-    if (get_buffer(o_start, &b_start, 8, 2 * n, 0, "start") < 0) goto done;
-    got = 4;
-    if (has_valid && get_buffer(o_valid, &b_valid, 1, n * PP, 0, "valid") < 0) goto done;
-    got = 5;
-    if (get_buffer(o_P, &b_P, 8, 5 * n, 1, "P") < 0) goto done;
-    got = 6;
-    const Py_ssize_t *sup = (const Py_ssize_t *)b_sup.buf;
-    for (Py_ssize_t k = 0; k < K; k++) {
-        if (sup[k] < 0 || sup[k] >= PP) {
-            PyErr_SetString(PyExc_IndexError, "support index outside the patch");
-            goto done;
-        }
-    }
+    const Py_ssize_t *sup = (const Py_ssize_t *)ix[0].buf;
+    if (indices_within(sup, K, 0, PP, "support") < 0)
+        goto done;
     /* per patch: S, win, current (ex, ey, r2, g, res), candidate (ex, ey, r2, g, res); per
      * patch scalars: lam, cost, step (5) */
     const size_t per = (size_t)(K > 0 ? K : 1);
@@ -294,10 +306,10 @@ static PyObject *gaussian_fit(PyObject *self, PyObject *args)
     }
     Py_BEGIN_ALLOW_THREADS                     /* no Python object is touched below */
     {
-        const double *s = (const double *)b_s.buf, *X = (const double *)b_X.buf, *Y = (const double *)b_Y.buf;
-        const double *start = (const double *)b_start.buf;
-        const unsigned char *valid = has_valid ? (const unsigned char *)b_valid.buf : NULL;
-        double *P = (double *)b_P.buf;
+        const double *s = (const double *)b[0].buf, *X = (const double *)b[1].buf, *Y = (const double *)b[2].buf;
+        const double *start = (const double *)b[3].buf;
+        const unsigned char *valid = (const unsigned char *)b[4].buf;     /* NULL: None */
+        double *P = (double *)b[5].buf;
         double *S = work, *WIN = S + n * per, *CUR = WIN + n * per;        /* CUR: n blocks of 5 K */
         double *TMP = CUR + 5 * n * per;                                    /* one block of 5 K */
         double *lam = TMP + 5 * per, *cost = lam + n, *step = cost + n;     /* step: n x 5 */
@@ -391,13 +403,8 @@ static PyObject *gaussian_fit(PyObject *self, PyObject *args)
     ret = Py_None;
 done:
     free(work);
-    PyBuffer_Release(&b_sup);
-    if (got >= 6) PyBuffer_Release(&b_P);
-    if (got >= 5 && has_valid) PyBuffer_Release(&b_valid);
-    if (got >= 4) PyBuffer_Release(&b_start);
-    if (got >= 3) PyBuffer_Release(&b_Y);
-    if (got >= 2) PyBuffer_Release(&b_X);
-    if (got >= 1) PyBuffer_Release(&b_s);
+    release(b, 6);
+    release(ix, 1);
     return ret;
 }
 
@@ -466,31 +473,23 @@ static PyObject *plane_removed(PyObject *self, PyObject *args)
     if (!PyArg_ParseTuple(args, "OnnOOOOdddO", &o_p, &n, &PP, &o_ring, &o_dx, &o_dy, &o_valid, &sign, &mad_scale,
                           &tiny, &o_out))
         return NULL;
-    Py_buffer b_ring;
-    if (PyObject_GetBuffer(o_ring, &b_ring, PyBUF_C_CONTIGUOUS) < 0)
+    Py_buffer ix[1], b[5];
+    const Arg idx[] = {{o_ring, IDX, -1, 0, 0, "ring"}};
+    if (acquire(idx, 1, ix) < 0)
         return NULL;
-    R = b_ring.len / (Py_ssize_t)sizeof(Py_ssize_t);
-    Py_buffer b_p, b_dx, b_dy, b_valid, b_out;
-    int got = 0, has_valid = (o_valid != Py_None), singular = 0;
+    R = ix[0].len / IDX;
+    const Arg arr[] = {{o_p, 8, n * PP, 0, 0, "p"}, {o_dx, 8, PP, 0, 0, "dx"}, {o_dy, 8, PP, 0, 0, "dy"},
+                       {o_valid, 1, n * PP, 0, 1, "valid"}, {o_out, 8, n * PP, 1, 0, "out"}};
+    if (acquire(arr, 5, b) < 0) {
+        release(ix, 1);
+        return NULL;
+    }
+    int singular = 0;
     PyObject *ret = NULL;
     double *work = NULL;
-    if (get_buffer(o_p, &b_p, 8, n * PP, 0, "p") < 0) goto done;
-    got = 1;
-    if (get_buffer(o_dx, &b_dx, 8, PP, 0, "dx") < 0) goto done;
-    got = 2;
-    if (get_buffer(o_dy, &b_dy, 8, PP, 0, "dy") < 0) goto done;
-    got = 3;
-    if (has_valid && get_buffer(o_valid, &b_valid, 1, n * PP, 0, "valid") < 0) goto done;
-    got = 4;
-    if (get_buffer(o_out, &b_out, 8, n * PP, 1, "out") < 0) goto done;
-    got = 5;
-    const Py_ssize_t *ring = (const Py_ssize_t *)b_ring.buf;
-    for (Py_ssize_t j = 0; j < R; j++) {
-        if (ring[j] < 0 || ring[j] >= PP) {
-            PyErr_SetString(PyExc_IndexError, "ring index outside the patch");
-            goto done;
-        }
-    }
+    const Py_ssize_t *ring = (const Py_ssize_t *)ix[0].buf;
+    if (indices_within(ring, R, 0, PP, "ring") < 0)
+        goto done;
     const size_t per = (size_t)(R > 0 ? R : 1);
     work = (double *)malloc(sizeof(double) * (per * 4 + (size_t)n * 3) + per * 3);
     if (!work) {
@@ -499,9 +498,9 @@ static PyObject *plane_removed(PyObject *self, PyObject *args)
     }
     Py_BEGIN_ALLOW_THREADS                     /* no Python object is touched below */
     {
-        const double *P = (const double *)b_p.buf, *DX = (const double *)b_dx.buf, *DY = (const double *)b_dy.buf;
-        const unsigned char *valid = has_valid ? (const unsigned char *)b_valid.buf : NULL;
-        double *out = (double *)b_out.buf;
+        const double *P = (const double *)b[0].buf, *DX = (const double *)b[1].buf, *DY = (const double *)b[2].buf;
+        const unsigned char *valid = (const unsigned char *)b[3].buf;     /* NULL: None */
+        double *out = (double *)b[4].buf;
         double *r = work, *dev = r + per, *buf = dev + per, *res = buf + per, *coefs = res + per;
         unsigned char *w0 = (unsigned char *)(coefs + 3 * n), *w = w0 + per, *nw = w + per;
         for (Py_ssize_t i = 0; i < n && !singular; i++) {
@@ -572,12 +571,8 @@ static PyObject *plane_removed(PyObject *self, PyObject *args)
     ret = PyBool_FromLong(singular);
 done:
     free(work);
-    PyBuffer_Release(&b_ring);
-    if (got >= 5) PyBuffer_Release(&b_out);
-    if (got >= 4 && has_valid) PyBuffer_Release(&b_valid);
-    if (got >= 3) PyBuffer_Release(&b_dy);
-    if (got >= 2) PyBuffer_Release(&b_dx);
-    if (got >= 1) PyBuffer_Release(&b_p);
+    release(b, 5);
+    release(ix, 1);
     return ret;
 }
 
@@ -603,54 +598,51 @@ static PyObject *edge_fit(PyObject *self, PyObject *args)
                           &o_dy, &o_w, &o_crowd, &o_valid, &o_sig, &K, &nk, &o_pen, &knot_px, &tiny, &o_look, &o_coef,
                           &o_m, &o_rssp, &o_c, &o_cs, &o_sn, &o_rss1, &o_k1, &o_depth, &o_span))
         return NULL;
-    enum { NB = 22 };
-    Py_buffer b[NB];
-    int got = 0, singular = 0, has_valid = (o_valid != Py_None);
+    /* the index arrays first: their lengths size the rest */
+    Py_buffer ix[3], b[19];
+    const Arg idx[] = {{o_ring, IDX, -1, 0, 0, "ring"}, {o_gi, IDX, -1, 0, 0, "gi"}, {o_near, IDX, -1, 0, 0, "near1"}};
+    if (acquire(idx, 3, ix) < 0)
+        return NULL;
+    const Py_ssize_t R = ix[0].len / IDX, G = ix[1].len / IDX, Q = ix[2].len / IDX;
+    const Arg arr[] = {
+        {o_p, 8, n * PP, 0, 0, "p"}, {o_dx, 8, PP, 0, 0, "dx"}, {o_dy, 8, PP, 0, 0, "dy"}, {o_w, 8, n * R, 0, 0, "w"},
+        {o_crowd, 1, n, 0, 0, "crowded"}, {o_sig, 8, n, 0, 0, "sig"}, {o_pen, 8, (Py_ssize_t)nk * nk, 0, 0, "pen"},
+        {o_look, 1, n, 1, 0, "look"}, {o_coef, 8, 3 * n, 1, 0, "coef"}, {o_m, 8, n, 1, 0, "m"},
+        {o_rssp, 8, n, 1, 0, "rssp"}, {o_c, 8, n * nk, 1, 0, "c"}, {o_cs, 8, n, 1, 0, "cs"}, {o_sn, 8, n, 1, 0, "sn"},
+        {o_rss1, 8, n, 1, 0, "rss1"}, {o_k1, 8, n, 1, 0, "k1"}, {o_depth, 8, n, 1, 0, "depth"},
+        {o_span, 8, n, 1, 0, "span"}, {o_valid, 1, n * PP, 0, 1, "valid"}};
+    if (acquire(arr, 19, b) < 0) {
+        release(ix, 3);
+        return NULL;
+    }
+    int singular = 0;
     PyObject *ret = NULL;
     double *work = NULL;
-    Py_ssize_t R = 0, G = 0, Q = 0;
-    /* index arrays first: their lengths size the rest */
-    if (PyObject_GetBuffer(o_ring, &b[got], PyBUF_C_CONTIGUOUS) < 0) goto done;
-    R = b[got++].len / (Py_ssize_t)sizeof(Py_ssize_t);
-    if (PyObject_GetBuffer(o_gi, &b[got], PyBUF_C_CONTIGUOUS) < 0) goto done;
-    G = b[got++].len / (Py_ssize_t)sizeof(Py_ssize_t);
-    if (PyObject_GetBuffer(o_near, &b[got], PyBUF_C_CONTIGUOUS) < 0) goto done;
-    Q = b[got++].len / (Py_ssize_t)sizeof(Py_ssize_t);
-    const Py_ssize_t *ring = (const Py_ssize_t *)b[0].buf, *gi = (const Py_ssize_t *)b[1].buf;
-    const Py_ssize_t *near1 = (const Py_ssize_t *)b[2].buf;
-    struct { PyObject *o; Py_ssize_t item, count; int wr; const char *name; } spec[] = {
-        {o_p, 8, n * PP, 0, "p"}, {o_dx, 8, PP, 0, "dx"}, {o_dy, 8, PP, 0, "dy"}, {o_w, 8, n * R, 0, "w"},
-        {o_crowd, 1, n, 0, "crowded"}, {o_sig, 8, n, 0, "sig"}, {o_pen, 8, (Py_ssize_t)nk * nk, 0, "pen"},
-        {o_look, 1, n, 1, "look"}, {o_coef, 8, 3 * n, 1, "coef"}, {o_m, 8, n, 1, "m"}, {o_rssp, 8, n, 1, "rssp"},
-        {o_c, 8, n * nk, 1, "c"}, {o_cs, 8, n, 1, "cs"}, {o_sn, 8, n, 1, "sn"}, {o_rss1, 8, n, 1, "rss1"},
-        {o_k1, 8, n, 1, "k1"}, {o_depth, 8, n, 1, "depth"}, {o_span, 8, n, 1, "span"}};
-    const int nspec = (int)(sizeof spec / sizeof spec[0]);
-    for (int q = 0; q < nspec; q++) {
-        if (get_buffer(spec[q].o, &b[got], spec[q].item, spec[q].count, spec[q].wr, spec[q].name) < 0) goto done;
-        got++;
+    const Py_ssize_t *ring = (const Py_ssize_t *)ix[0].buf, *gi = (const Py_ssize_t *)ix[1].buf;
+    const Py_ssize_t *near1 = (const Py_ssize_t *)ix[2].buf;
+    if (indices_within(ring, R, 0, PP, "ring") < 0 || indices_within(gi, G, P, PP - P, "gradient pixel") < 0
+        || indices_within(near1, Q, 0, PP, "centre pixel") < 0)
+        goto done;
+    if (nk < 2) {
+        PyErr_SetString(PyExc_ValueError, "fewer than two knots");
+        goto done;
     }
-    Py_buffer b_valid;
-    if (has_valid && get_buffer(o_valid, &b_valid, 1, n * PP, 0, "valid") < 0) goto done;
-    for (Py_ssize_t j = 0; j < R; j++)
-        if (ring[j] < 0 || ring[j] >= PP) { PyErr_SetString(PyExc_IndexError, "ring index outside the patch"); goto fail_valid; }
-    for (Py_ssize_t j = 0; j < G; j++)
-        if (gi[j] - P < 0 || gi[j] + P >= PP) { PyErr_SetString(PyExc_IndexError, "gradient pixel at the patch's border"); goto fail_valid; }
-    for (Py_ssize_t j = 0; j < Q; j++)
-        if (near1[j] < 0 || near1[j] >= PP) { PyErr_SetString(PyExc_IndexError, "centre pixel outside the patch"); goto fail_valid; }
-    if (nk < 2) { PyErr_SetString(PyExc_ValueError, "fewer than two knots"); goto fail_valid; }
     work = (double *)malloc(sizeof(double) * ((size_t)R * 3 + (size_t)nk * 8 + (size_t)nk * nk + 1));
-    if (!work) { PyErr_NoMemory(); goto fail_valid; }
+    if (!work) {
+        PyErr_NoMemory();
+        goto done;
+    }
     Py_BEGIN_ALLOW_THREADS                         /* no Python object is touched below */
     {
-        const double *pp = (const double *)b[3].buf, *DX = (const double *)b[4].buf, *DY = (const double *)b[5].buf;
-        const double *W = (const double *)b[6].buf, *sig = (const double *)b[8].buf, *pen = (const double *)b[9].buf;
-        const unsigned char *crowded = (const unsigned char *)b[7].buf;
-        const unsigned char *valid = has_valid ? (const unsigned char *)b_valid.buf : NULL;
-        unsigned char *look = (unsigned char *)b[10].buf;
-        double *coef = (double *)b[11].buf, *mo = (double *)b[12].buf, *rssp = (double *)b[13].buf;
-        double *cc = (double *)b[14].buf, *cso = (double *)b[15].buf, *sno = (double *)b[16].buf;
-        double *rss1 = (double *)b[17].buf, *k1o = (double *)b[18].buf, *depth = (double *)b[19].buf;
-        double *span = (double *)b[20].buf;
+        const double *pp = (const double *)b[0].buf, *DX = (const double *)b[1].buf, *DY = (const double *)b[2].buf;
+        const double *W = (const double *)b[3].buf, *sig = (const double *)b[5].buf, *pen = (const double *)b[6].buf;
+        const unsigned char *crowded = (const unsigned char *)b[4].buf;
+        unsigned char *look = (unsigned char *)b[7].buf;
+        double *coef = (double *)b[8].buf, *mo = (double *)b[9].buf, *rssp = (double *)b[10].buf;
+        double *cc = (double *)b[11].buf, *cso = (double *)b[12].buf, *sno = (double *)b[13].buf;
+        double *rss1 = (double *)b[14].buf, *k1o = (double *)b[15].buf, *depth = (double *)b[16].buf;
+        double *span = (double *)b[17].buf;
+        const unsigned char *valid = (const unsigned char *)b[18].buf;    /* NULL: None */
         const size_t nkk = (size_t)nk;
         /* per ring pixel: its knot, fraction, bg; per knot: d (two parts), off, rhs (two), reach (two); M */
         double *kf = work, *fr = kf + R, *bg = fr + R;
@@ -774,12 +766,10 @@ static PyObject *edge_fit(PyObject *self, PyObject *args)
     }
     Py_END_ALLOW_THREADS
     ret = PyBool_FromLong(singular);
-fail_valid:
-    if (has_valid) PyBuffer_Release(&b_valid);
 done:
     free(work);
-    for (int q = 0; q < got; q++)
-        PyBuffer_Release(&b[q]);
+    release(b, 19);
+    release(ix, 3);
     return ret;
 }
 
