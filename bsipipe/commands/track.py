@@ -2273,7 +2273,7 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
     rs.add_csv("markers2d.csv", table[cols2d], float_format="%.6f", na_rep="")
     from ..io.dltdv import format_dltdv_xypts
     from ..io.xmalab import format_xmalab_2d, format_xmalab_3d, xmalab_cameras
-    marker_order = list(dict.fromkeys(table["marker"]))
+    marker_order = list(pd.unique(table["marker"]))
     n_frames = int(table["frame"].max()) + 1
     rs.add_text("xmalab_2d.csv", format_xmalab_2d(table[table["found"]], views, marker_order, range(n_frames)))
     text, points = format_dltdv_xypts(table[table["found"]], views, marker_order, range(n_frames))

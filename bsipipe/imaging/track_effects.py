@@ -2141,7 +2141,7 @@ def match_tracks_across_views(table: pd.DataFrame, views: tuple[ViewGeometry, Vi
     va, vb = views
     ta = table[(table["view"] == va.name) & table["found"]]
     tb = table[(table["view"] == vb.name) & table["found"]]
-    na, nb = list(dict.fromkeys(ta["marker"])), list(dict.fromkeys(tb["marker"]))
+    na, nb = list(pd.unique(ta["marker"])), list(pd.unique(tb["marker"]))
     out = {b: f"{vb.name}:{b}" for b in nb}
     if not (na and nb):
         return out

@@ -97,7 +97,7 @@ def camera_columns(points: pd.DataFrame, views: Sequence[str], markers: Sequence
     cams = xmalab_cameras(views)
     views = list(cams.values())             # the files' column order
     p = points[points["view"].isin(views)]
-    markers = list(dict.fromkeys(p["marker"])) if markers is None else list(markers)
+    markers = list(pd.unique(p["marker"])) if markers is None else list(markers)
     if frames is None:
         n = int(p["frame"].max()) + 1 if len(p) else 0
         frames = range(n)
@@ -118,7 +118,7 @@ def camera_columns(points: pd.DataFrame, views: Sequence[str], markers: Sequence
 def format_xmalab_3d(points: pd.DataFrame, markers: Sequence[str] | None = None,
                      frames: Sequence[int] | None = None) -> str:
     """XMALab 3-D CSV text from a table ``frame, marker, x_mm, y_mm, z_mm``."""
-    markers = list(dict.fromkeys(points["marker"])) if markers is None else list(markers)
+    markers = list(pd.unique(points["marker"])) if markers is None else list(markers)
     if frames is None:
         n = int(points["frame"].max()) + 1 if len(points) else 0
         frames = range(n)

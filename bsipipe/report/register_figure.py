@@ -31,7 +31,7 @@ def registration_figure(table: pd.DataFrame, ct_mm: dict, frame: int, *, fre_mm:
     err_ax, mot_ax = fig.add_subplot(gs[:, 1]), fig.add_subplot(gs[:, 2])
     at = table[table["frame"] == frame].drop_duplicates("marker").set_index("marker")
     role = table.drop_duplicates("marker").set_index("marker")["role"] if "role" in table else pd.Series(dtype=str)
-    names = list(dict.fromkeys(list(ct_mm) + list(at.index) + list(dict.fromkeys(table["marker"]))))
+    names = list(dict.fromkeys(list(ct_mm) + list(at.index) + list(pd.unique(table["marker"]))))
     import matplotlib
     cmap = matplotlib.colormaps["tab10"]
     colour = {n: cmap(k % 10) for k, n in enumerate(names)}

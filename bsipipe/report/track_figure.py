@@ -22,12 +22,12 @@ def trajectories_figure(table2d: pd.DataFrame, points3d: pd.DataFrame | None = N
     re-finds marked) and, with 3-D points, x/y/z in mm against time (raw lines, filtered
     dashed where present).  Returns a matplotlib Figure."""
     import matplotlib
-    views = list(dict.fromkeys(table2d["view"]))
+    views = list(pd.unique(table2d["view"]))
     n3 = 0 if points3d is None or points3d.empty else 1
     fig = _figure((5.2 * (len(views) + n3), 4.8))
     axes = fig.subplots(1, len(views) + n3, squeeze=False)
     cmap = matplotlib.colormaps["tab10"]
-    markers = list(dict.fromkeys(table2d["marker"]))
+    markers = list(pd.unique(table2d["marker"]))
     colour = {m: cmap(i % 10) for i, m in enumerate(markers)}
     for ax, v in zip(axes[0], views):
         t = table2d[table2d["view"] == v]
