@@ -40,8 +40,15 @@ def _version(mod: str) -> str | None:
 
 
 def library_versions() -> dict[str, str | None]:
+    """The versions a result was computed with, and which sub-pixel fits marker measurements
+    run with here: the compiled kernels (``bsipipe.imaging._kernels``, with their version) or
+    NumPy's (the same values to 1e-9 px).  Every command says it, whatever it measured and
+    whatever ran before it in the process: a stage rerun alone writes what the whole study
+    wrote."""
     import cv2
-    return {
+
+    from .imaging import detect
+    out = {
         "bsipipe": __version__,
         "python": platform.python_version(),
         "numpy": np.__version__,
@@ -50,6 +57,9 @@ def library_versions() -> dict[str, str | None]:
         "scikit-image": _version("scikit-image"),
         "pandas": _version("pandas"),
     }
+    k = detect._kernels
+    out["subpixel_fits"] = f"compiled (bsipipe.imaging._kernels {k.VERSION})" if k is not None else "numpy"
+    return out
 
 
 def input_hashes(paths: Iterable[str | os.PathLike], known: dict[str, str] | None = None) -> dict[str, str]:

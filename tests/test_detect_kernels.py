@@ -25,6 +25,8 @@ def test_the_kernels_are_built():
     from bsipipe.imaging import _kernels
     assert D._kernels is _kernels
     assert {"centroid", "gaussian_fit", "plane_removed", "edge_fit"} <= set(dir(_kernels))
+    from bsipipe.provenance import library_versions
+    assert library_versions()["subpixel_fits"] == f"compiled (bsipipe.imaging._kernels {D.KERNELS_VERSION})"
 
 
 def _patches(rng, geo, n, *, integer=False, edge=False):
