@@ -1104,12 +1104,18 @@ def _faint_warning(info: dict, views) -> dict | None:
           "structure; seeds name and place them for certain", log, markers=hit)
 
 
+def _averaged(temporal_noise: dict | None) -> bool:
+    """Whether a view's frames are averaged over time (:func:`_temporal_noise`'s finding): its
+    triples agree, on a lag-1 noise correlation of :data:`LAG_RHO` or more, over at least
+    :data:`LAG_MIN_TRIPLES` of them."""
+    t = temporal_noise or {}
+    return bool(t.get("consistent")) and t["rho"] >= LAG_RHO and t["n_triples"] >= LAG_MIN_TRIPLES
+
+
 def _lag_warning(info: dict, views) -> dict | None:
     """``frames-averaged``: views whose consecutive frames share their noise (:data:`LAG_RHO`)."""
     from ..quality import warning
-    hit = {v: info[v]["temporal_noise"] for v in views
-           if (info[v].get("temporal_noise") or {}).get("consistent")
-           and info[v]["temporal_noise"]["rho"] >= LAG_RHO and info[v]["temporal_noise"]["n_triples"] >= LAG_MIN_TRIPLES}
+    hit = {v: info[v]["temporal_noise"] for v in views if _averaged(info[v].get("temporal_noise"))}
     if not hit:
         return None
     return warning(
@@ -1126,7 +1132,8 @@ def _lag_warning(info: dict, views) -> dict | None:
         log, views={v: t for v, t in hit.items()})
 
 
-def _lag_correction(info: dict, table: pd.DataFrame, pair, points3d: pd.DataFrame, fit, cfg) -> dict | None:
+def _lag_correction(info: dict, table: pd.DataFrame, pair, points3d: pd.DataFrame, fit, cfg,
+                    lossy: dict) -> dict | None:
     r"""``frames-averaged`` put right in time: where a calibrated view's frames are a recursive
     average :math:`y_t = (1-\rho) x_t + \rho y_{t-1}` of what the C-arm saw (its noise correlated
     from frame to frame, :func:`_temporal_noise`), a marker moving at a steady speed is imaged
@@ -1136,39 +1143,33 @@ def _lag_correction(info: dict, table: pd.DataFrame, pair, points3d: pd.DataFram
     the loop paired the views through a view-time-offset (the second view then follows the
     first's clock, its own lag in the offset), else the views' mean.  Not where the frames were
     stored lossily (a codec's prediction between frames correlates their noise without delaying
-    the picture), without a clock, or with ``correct_lag: false``.  Changes ``points3d`` in
-    place; returns what was done for track.json (None where no view is averaged)."""
-    lags = {}
-    for v in pair:
-        t = (info.get(v) or {}).get("temporal_noise") or {}
-        averaged = bool(t.get("consistent")) and (t.get("rho") or 0.0) >= LAG_RHO \
-            and t.get("n_triples", 0) >= LAG_MIN_TRIPLES
-        lags[v] = float(t["lag_frames"]) if averaged else 0.0
+    the picture; ``lossy``: view -> what the ``lossy-frames`` warning found), without a clock, or
+    with ``correct_lag: false``.  Changes ``points3d`` in place; returns what was done for
+    track.json (None where no view is averaged)."""
+    noise = {v: (info.get(v) or {}).get("temporal_noise") for v in pair}
+    lags = {v: float(noise[v]["lag_frames"]) if _averaged(noise[v]) else 0.0 for v in pair}
     if not any(lags.values()):
         return None
-    out = {"views": {v: {"rho": (info[v].get("temporal_noise") or {}).get("rho"), "lag_frames": lags[v]}
-                     for v in pair}}
+    out = {"views": {v: {"rho": (noise[v] or {}).get("rho"), "lag_frames": lags[v]} for v in pair}}
     offset = (fit.params.get("view_time_offset_s") if fit is not None else None) is not None
     lag = lags[pair[0]] if offset else float(np.mean([lags[v] for v in pair]))
     out["lag_frames"] = lag
     out["rule"] = (f"the first view's lag ({pair[0]}: the loop paired the views through a view-time-offset)" if offset
                    else "the mean of the views' lags")
-    from ..io.images import lossy_compression
-    lossy = {v: c for v in pair if lags[v] and (c := lossy_compression(cfg.views[v])) is not None}
-    a = table[table["view"] == pair[0]][["frame", "time_s"]].drop_duplicates("frame").sort_values("frame")
-    ok = np.isfinite(a["time_s"].to_numpy(float))
+    lossy = {v: c for v, c in lossy.items() if lags.get(v)}
+    from ..imaging.track_effects import frame_period
+    a = table[table["view"] == pair[0]]
+    period = frame_period(a["frame"], a["time_s"])
     why = ("correct_lag is false" if not cfg.correct_lag else
            f"only {', '.join(v for v in pair if lags[v])}'s frames are averaged: the loop's view-time-offset holds "
            f"that lag, and the points follow {pair[0]}'s clock" if lag == 0.0 else
            "frames stored lossily (" + ", ".join(f"{v}: {c}" for v, c in lossy.items()) + "): a codec's prediction "
            "between frames correlates their noise without delaying the picture" if lossy else
            "no clock (neither time stamps nor a frame rate): the points are dated by frame only"
-           if ok.sum() < 2 else None)
+           if not period > 0 else None)
     if why is not None:
         out.update(applied=False, shift_s=0.0, why_not=why)
         return out
-    f, t = a["frame"].to_numpy(float)[ok], a["time_s"].to_numpy(float)[ok]
-    period = float(np.median(np.diff(t) / np.diff(f)))
     shift = lag * period
     points3d["time_s"] = points3d["time_s"] - shift
     out.update(applied=True, frame_period_s=period, shift_s=shift)
@@ -2253,7 +2254,8 @@ def run(config_path=None, *, out, view=(), calibration=None, polarity=None, diam
         warnings += _ray_gap_warnings(points3d, cfg.max_ray_gap_mm)
         if seed_df is None:
             warnings += _pairing_suspects(points3d)
-        lag_fix = _lag_correction(info, table, pair, points3d, fit, cfg)
+        lossy = next((w["views"] for w in warnings if w["code"] == "lossy-frames"), {})
+        lag_fix = _lag_correction(info, table, pair, points3d, fit, cfg, lossy)
         if lag_fix is not None:
             for w in warnings:
                 if w["code"] == "frames-averaged":

@@ -334,19 +334,9 @@ def _gauss_kernel(sigma_px: float) -> np.ndarray:
     return cv2.getGaussianKernel(int(round(sigma_px * 8 + 1)) | 1, sigma_px, cv2.CV_32F)
 
 
-#: The version of ``_kernels.c`` this module calls (its ``KERNELS_VERSION``).
-KERNELS_VERSION = 1
-
-try:                                   # the compiled sub-pixel fits (setup.py builds them; optional)
-    from . import _kernels
-except ImportError:                    # pragma: no cover - not built: the NumPy versions
-    _kernels = None
-if _kernels is not None and getattr(_kernels, "VERSION", None) != KERNELS_VERSION:   # pragma: no cover
-    import warnings
-    warnings.warn(f"{_kernels.__file__} was built from another version of _kernels.c: the sub-pixel fits run in "
-                  f"NumPy (slower) until it is rebuilt (pip install -e . or make install)", RuntimeWarning,
-                  stacklevel=1)
-    _kernels = None
+# the compiled sub-pixel fits (setup.py builds them; optional): None where they are not built
+from .compiled import KERNELS_VERSION  # noqa: E402, F401 - the version the calls below are written for
+from .compiled import kernels as _kernels  # noqa: E402
 
 try:                                   # the batched LAPACK solver np.linalg.solve wraps
     from numpy.linalg._umath_linalg import solve as _gesv
@@ -1024,6 +1014,7 @@ def _edge_background(p: np.ndarray, geo: _Geo, valid: np.ndarray | None, xy: np.
         sig = _MAD * _row_median(np.abs(lap - _row_median(lap, None)[:, None]), None) / math.sqrt(20.0)
     else:
         sig = noise
+    sig = np.ascontiguousarray(np.broadcast_to(np.asarray(sig, np.float64), (n,)))
     fit = _edge_fit_compiled(p, geo, valid, w, crowded, sig) if _kernels is not None else None
     if fit is None:
         fit = _edge_fit_numpy(p, geo, valid, w, pr, crowded, sig)
@@ -1071,14 +1062,12 @@ def _edge_fit_compiled(p, geo: _Geo, valid, w, crowded, sig):
     singular = _kernels.edge_fit(
         p, n, p.shape[1], 2 * geo.half + 1, geo.ring_idx, gi, geo.near1, geo.dx, geo.dy,
         np.ascontiguousarray(w, dtype=np.float64), crowded.astype(np.uint8),
-        None if valid is None else np.ascontiguousarray(valid, dtype=np.uint8),
-        np.ascontiguousarray(np.broadcast_to(np.asarray(sig, np.float64), (n,))), K, nk,
+        None if valid is None else np.ascontiguousarray(valid, dtype=np.uint8), sig, K, nk,
         np.ascontiguousarray(pen, dtype=np.float64), _EDGE_KNOT_PX, float(_EYE3_TINY[0, 0]),
         look, coef, m, rssp, c, cs, sn, rss1, k1, depth, span)
     if singular:
         return None
     i = np.flatnonzero(look)
-    sig = np.broadcast_to(np.asarray(sig, np.float64), (n,))
     return (i, m[i], rssp[i], sig[i], c[i], cs[i, None], sn[i, None], rss1[i], k1[i], depth[i], span[i])
 
 
@@ -1107,7 +1096,7 @@ def _edge_fit_numpy(p, geo: _Geo, valid, w, pr, crowded, sig):
     if len(i) == 0:
         e = np.zeros(0)
         return i, e, e, e, np.zeros((0, nk)), e[:, None], e[:, None], e, e, e, e
-    pi, pr, w, m, rssp, sig = p[i], pr[i], w[i], m[i], rssp[i], np.broadcast_to(sig, (n,))[i]
+    pi, pr, w, m, rssp, sig = p[i], pr[i], w[i], m[i], rssp[i], sig[i]
     # the edge's normal: the main axis of the ring's gradients
     gx = pi[:, gi + 1] - pi[:, gi - 1]
     gy = pi[:, gi + P] - pi[:, gi - P]
@@ -1263,15 +1252,21 @@ def _gaussian_fit(s: np.ndarray, geo: _Geo, start: np.ndarray, sigma0: float,
         return _gaussian_fit_numpy(s, geo, start, sigma0, valid, n_iter)
     n = len(start)
     start = np.ascontiguousarray(start, dtype=np.float64)
-    reach = geo.radius + 1.0 + (float(np.hypot(start[:, 0], start[:, 1]).max()) if n else 0.0)
-    sel = geo.support_r <= reach + 1e-9
-    X = np.ascontiguousarray(geo.sup_xy[0, sel])
-    Y = np.ascontiguousarray(geo.sup_xy[1, sel])
+    sup, X, Y = _fit_support(geo, start)
     P = np.empty((n, 5))
-    _kernels.gaussian_fit(np.ascontiguousarray(s, dtype=np.float64), n, s.shape[1], geo.support[sel], X, Y, start,
+    _kernels.gaussian_fit(np.ascontiguousarray(s, dtype=np.float64), n, s.shape[1], sup, X, Y, start,
                           None if valid is None else np.ascontiguousarray(valid, dtype=np.uint8),
                           geo.radius, float(sigma0), float(geo.half), n_iter, P)
     return _gaussian_result(P, geo, start)
+
+
+def _fit_support(geo: _Geo, start: np.ndarray):
+    """The support pixels some patch's fit window reaches (within ``radius + 1`` of a start,
+    ``start`` (N, 2) offsets from the patch centres; the others weigh nothing): their indices
+    and x, y offsets (contiguous)."""
+    reach = geo.radius + 1.0 + (float(np.hypot(start[:, 0], start[:, 1]).max()) if len(start) else 0.0)
+    sel = geo.support_r <= reach + 1e-9
+    return geo.support[sel], np.ascontiguousarray(geo.sup_xy[0, sel]), np.ascontiguousarray(geo.sup_xy[1, sel])
 
 
 def _gaussian_result(P: np.ndarray, geo: _Geo, start: np.ndarray):
@@ -1292,13 +1287,8 @@ def _gaussian_fit_numpy(s: np.ndarray, geo: _Geo, start: np.ndarray, sigma0: flo
     Every patch's model, residual and Jacobian are kept between iterations and written in
     place; a step's cost comes with its model (one pass), so an iteration is about thirty
     small array operations."""
-    # only the support pixels that some patch's window reaches (the others weigh nothing)
     n = len(start)
-    reach = geo.radius + 1.0 + (float(np.hypot(start[:, 0], start[:, 1]).max()) if n else 0.0)
-    sel = geo.support_r <= reach + 1e-9
-    sup = geo.support[sel]
-    X = geo.sup_xy[0, sel]
-    Y = geo.sup_xy[1, sel]
+    sup, X, Y = _fit_support(geo, start)
     S = s[:, sup]
     K = S.shape[1]
     ex0 = X - start[:, 0:1]

@@ -74,7 +74,7 @@ def natural_key(name: str) -> list:
 #: Suffixes whose files are raster images, never DICOM: a folder of PNG frames is not opened
 #: twice per frame to look for a DICOM preamble (0.1-0.5 ms a frame on the decoding threads);
 #: DICOM data under such a name is refused by the decoder with a message saying so.
-_RASTER_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".tif", ".tiff")
+_RASTER_SUFFIXES = tuple(s for s in IMAGE_SUFFIXES if s not in (".dcm", ".dicom"))
 
 
 def _is_dicom(path: Path) -> bool:
