@@ -4,6 +4,7 @@ OpenCV's FileStorage files, on the real ``stereo_calib`` sample's ``intrinsics.y
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -91,6 +92,49 @@ def test_an_opencv_stereo_file_triangulates_the_real_chessboard(tmp_path):
         d = np.linalg.norm(X[i] - X[j], axis=1)
         assert abs(np.mean(d) - 25.0) < 0.1 and np.std(d) < 0.53
     assert np.abs(linear - refined).max() < 0.05
+
+
+@pytest.mark.parametrize("unit, scale", [("metres", 1e-3), ("squares of 25 mm", 1 / 25.0)])
+def test_a_pair_calibrated_in_metres_or_board_squares_is_refused(tmp_path, unit, scale):
+    """The real pair's calibration (baseline 83.6 mm) written as it would be had the board been
+    given in metres (0.0836) or in squares (3.34, OpenCV's stereo_calib sample's default square
+    size of 1): refused, naming the file, the baseline and the fix, in FileStorage, Bouguet and
+    JSON form alike; in millimetres it is read as before.  It had been read as millimetres: every
+    3-D point and ray gap 1000 or 25 times too small, labelled mm."""
+    _, obj, left, right = _real_pairs()
+    _, K1, d1, _, _ = cv2.calibrateCamera(obj, left, (640, 480), None, None)
+    _, K2, d2, _, _ = cv2.calibrateCamera(obj, right, (640, 480), None, None)
+    *_, R, T, _, _ = cv2.stereoCalibrate(obj, left, right, K1, d1, K2, d2, (640, 480), flags=cv2.CALIB_FIX_INTRINSIC)
+    sizes = {"left": (480, 640), "right": (480, 640)}
+
+    def files(t, folder: Path) -> list[Path]:
+        folder.mkdir()
+        fs = cv2.FileStorage(str(folder / "stereo.yml"), cv2.FILE_STORAGE_WRITE)
+        for k, v in (("M1", K1), ("D1", d1), ("M2", K2), ("D2", d2), ("R", R), ("T", t)):
+            fs.write(k, v)
+        fs.release()
+        js = folder / "calibration.json"
+        js.write_text(json.dumps({"views": {"left": {"image_size": [640, 480], "camera_matrix": K1.tolist(),
+                                                      "dist_coeffs": d1.ravel().tolist()},
+                                             "right": {"image_size": [640, 480], "camera_matrix": K2.tolist(),
+                                                       "dist_coeffs": d2.ravel().tolist()}},
+                                  "stereo": {"views": ["left", "right"], "R": R.tolist(), "T_mm": t.ravel().tolist()}}))
+        return [folder / "stereo.yml", _bouguet(folder / "Calib_Results_stereo.mat", T=t.reshape(3, 1).tolist()), js]
+
+    for path in files(T, tmp_path / "mm"):
+        cal = read_stereo_calibration(path, ["left", "right"], sizes)
+        assert np.linalg.norm(cal["stereo"]["T_mm"]) == pytest.approx(83.6, abs=0.1), path
+    for path in files(T * scale, tmp_path / "scaled"):
+        with pytest.raises(InputError, match="millimetres") as e:
+            read_stereo_calibration(path, ["left", "right"], sizes)
+        msg = str(e.value)
+        assert str(path) in msg and f"{83.6 * scale:.3g}"[:-1] in msg and "metres" in msg and "square" in msg, msg
+
+
+def test_a_calibration_whose_cameras_stand_in_one_place_is_refused(tmp_path):
+    p = _bouguet(tmp_path / "Calib_Results_stereo.mat", T=[[0.0], [0.0], [0.0]])
+    with pytest.raises(InputError, match="T is zero"):
+        read_stereo_calibration(p, ["cam1", "cam2"])
 
 
 def _bouguet(path: Path, **over):

@@ -1649,6 +1649,25 @@ def test_a_calibration_of_one_camera_for_two_views_names_the_missing_one(tmp_pat
     assert r.exit_code == 2 and "no cam2" in r.output and "calibration.json" in r.output, r.output
 
 
+def test_a_calibration_in_metres_stops_track_before_anything_is_written(tmp_path):
+    """The bench twin's true cameras (baseline 895 mm) with T given in metres: exit 2 naming the
+    file and the fix, no output folder; it had triangulated 1000 times too small, labelled mm."""
+    for v in ("cam1", "cam2"):
+        (tmp_path / v).mkdir()
+        (tmp_path / v / "sample_frame.jpg").write_bytes((XRAY / "sample_frame.jpg").read_bytes())
+    K = [[2000.0, 0, 512], [0, 2000.0, 512], [0, 0, 1]]
+    cam = {"image_size": [1024, 1024], "camera_matrix": K, "dist_model": "opencv-5", "dist_coeffs": [0] * 5,
+           "dist_coeff_names": ["k1", "k2", "p1", "p2", "k3"]}
+    cal = tmp_path / "calibration.json"
+    cal.write_text(json.dumps({"views": {"cam1": cam, "cam2": cam},
+                               "stereo": {"views": ["cam1", "cam2"], "R": np.eye(3).tolist(), "T_mm": [0.633, 0.0, 0.633]}}))
+    out = tmp_path / "out"
+    r = CliRunner().invoke(cli, ["track", "--view", f"cam1={tmp_path / 'cam1'}", "--view", f"cam2={tmp_path / 'cam2'}",
+                                 "--polarity", "dark", "--diameter-px", "4", "--calibration", str(cal), "-o", str(out)])
+    assert r.exit_code == 2 and "calibration.json" in r.output and "0.8952 apart" in r.output, r.output
+    assert "multiply T by 1000" in r.output and not out.exists(), r.output
+
+
 def test_where_the_times_come_from_is_said(tmp_path):
     """--fps on a source with its own time stamps had been ignored without a word, and frames
     with neither had left time_s empty without one."""

@@ -17,7 +17,8 @@ Bouguet's Camera Calibration Toolbox for MATLAB (``.mat``: ``Calib_Results_stere
 
 Camera 1 / left is the first ``--view`` of the calibrated pair, camera 2 / right the second.
 ``T`` is in the units the tool was given the target in: millimetres expected (bsipipe's
-``T_mm``).  Image sizes missing from the file are taken from the frames (``shapes``).  The
+``T_mm``); a baseline under :data:`MIN_BASELINE_MM` (a pair calibrated in metres, or in squares
+of its board) is refused, in any format.  Image sizes missing from the file are taken from the frames (``shapes``).  The
 files carry no reprojection RMS: ``stereo.rms_px`` is None (``track`` then assumes one).
 """
 
@@ -32,7 +33,7 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["read_stereo_calibration", "OPENCV_SUFFIXES", "BOUGUET_SUFFIXES"]
+__all__ = ["read_stereo_calibration", "check_baseline", "MIN_BASELINE_MM", "OPENCV_SUFFIXES", "BOUGUET_SUFFIXES"]
 
 OPENCV_SUFFIXES = (".yml", ".yaml", ".xml")
 BOUGUET_SUFFIXES = (".mat",)
@@ -49,16 +50,52 @@ def read_stereo_calibration(path: str | os.PathLike, views: Sequence[str],
     p = Path(path)
     suffix = p.suffix.lower()
     if suffix in OPENCV_SUFFIXES:
-        return _opencv(p, views, shapes or {})
-    if suffix in BOUGUET_SUFFIXES:
-        return _bouguet(p, views)
+        cal = _opencv(p, views, shapes or {})
+    elif suffix in BOUGUET_SUFFIXES:
+        cal = _bouguet(p, views)
+    else:
+        try:
+            with open(p, encoding="utf-8") as f:
+                cal = json.load(f)
+        except FileNotFoundError:
+            raise InputError("file not found", path=p) from None
+        except (OSError, ValueError) as e:
+            raise InputError(f"cannot read the calibration: {e}", path=p) from None
+    check_baseline(cal, p)
+    return cal
+
+
+#: The shortest stereo baseline (|T|) read as millimetres.  Two C-arms stand about a metre
+#: apart (the study's twin: 896 mm), a desktop camera pair several centimetres (OpenCV's real
+#: chessboard pair: 83.6 mm); a pair calibrated in metres reads 0.05-1.5, and one calibrated in
+#: squares of its board (OpenCV's stereo_calib sample takes a square size of 1 unless told)
+#: 2-8 for such a desktop pair.  Below this, every 3-D point, ray gap and displacement would
+#: come out 25 to 1000 times too small, labelled mm.
+MIN_BASELINE_MM = 10.0
+
+
+def check_baseline(cal, path: Path) -> None:
+    """Refuse a calibration whose stereo translation cannot be in millimetres
+    (:data:`MIN_BASELINE_MM`), naming the file, the baseline and the fix; a calibration
+    without a readable stereo block is left to the caller's own checks."""
+    st = cal.get("stereo") if isinstance(cal, dict) else None
     try:
-        with open(p, encoding="utf-8") as f:
-            return json.load(f)
-    except FileNotFoundError:
-        raise InputError("file not found", path=p) from None
-    except (OSError, ValueError) as e:
-        raise InputError(f"cannot read the calibration: {e}", path=p) from None
+        T = np.asarray(st["T_mm"], float).ravel()
+    except (TypeError, KeyError, ValueError):
+        return
+    if T.size != 3 or not np.all(np.isfinite(T)):
+        return
+    b = float(np.linalg.norm(T))
+    if b == 0.0:
+        raise InputError("the stereo translation T is zero: the two cameras stand in one place, and rays from one "
+                         "point cannot be triangulated", path=path)
+    if b < MIN_BASELINE_MM:
+        raise InputError(
+            f"the two cameras are {b:.4g} apart in the calibration's units (|T|): bsipipe reads T in millimetres, "
+            f"and no C-arm or camera pair stands {b:.4g} mm apart (under {MIN_BASELINE_MM:g} mm): the calibration "
+            f"was made in metres (multiply T by 1000) or in squares of the board (multiply T by the square's size "
+            f"in mm; OpenCV's stereo_calib sample takes a square size of 1 unless told); every 3-D point and ray "
+            f"gap would come out that many times too small, labelled mm", path=path)
 
 
 def _pair(views: Sequence[str], path: Path, tool: str) -> tuple[str, str]:
