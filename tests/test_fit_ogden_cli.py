@@ -548,6 +548,23 @@ def test_a_fit_whose_modulus_runs_to_zero_is_a_failure(tmp_path):
     assert abs(json.loads((tmp_path / "loop" / "fit.json").read_text())["params"]["mu_pa"] / 720 - 1) < 0.05
 
 
+def test_a_fit_whose_modulus_runs_to_zero_draws_no_bootstrap(tmp_path, monkeypatch):
+    """The same failed fit with the default bootstrap: the same exit 1 and message, its warnings
+    included, and not one refit drawn (a tension test's 200 refits of a zero modulus had cost
+    17 s of the 27 before its error)."""
+    import bsipipe.mechanics.fit as mfit
+    frame, _ = synth_compression_log(seed=37, baseline_n=-2.5)
+    p = write_bluehill2(frame, tmp_path / "off.csv", label="S10", geometry={"diameter_mm": 18.0, "height_mm": 12.0})
+    said = _invoke("fit-ogden", p, "--no-loop", "--bootstrap", "0", "-o", tmp_path / "out0").output
+
+    def refit(*a, **k):
+        raise AssertionError("a bootstrap was drawn for a fit with no modulus")
+    monkeypatch.setattr(mfit, "add_bootstrap", refit)
+    r = _invoke("fit-ogden", p, "--no-loop", "-o", tmp_path / "out")
+    assert r.exit_code == 1 and r.output == said.replace("out0", "out"), (r.output, said)
+    assert "unloaded force of -2.5 N" in r.output and not (tmp_path / "out").exists()
+
+
 def test_a_record_tared_on_a_preloaded_specimen(tmp_path):
     """The specimen pressed 0.22 mm before the record starts and the load cell zeroed there;
     the contact given (-0.22 mm): the record had been fitted as if the cell read the whole

@@ -792,13 +792,24 @@ def _spikes_left_out(input_info: list[dict]) -> list[dict]:
 MIN_MODULUS_PA = 1e-6
 
 
+def _moduli(params: dict) -> list[float]:
+    """The fit's Ogden, neo-Hookean or Mooney-Rivlin moduli (``mu*_pa``, ``c*_pa``)."""
+    import re
+    return [float(v) for k, v in params.items() if re.fullmatch(r"(mu\d*|c\d+)_pa", k) and isinstance(v, (int, float))]
+
+
+def _all_moduli_zero(params: dict) -> bool:
+    """Every modulus below :data:`MIN_MODULUS_PA`: the fit failed (:func:`_no_modulus`)."""
+    mus = _moduli(params)
+    return bool(mus) and max(abs(m) for m in mus) < MIN_MODULUS_PA
+
+
 def _no_modulus(params: dict, warnings: list[dict], path) -> None:
     """A fit whose every Ogden (or neo-Hookean, Mooney-Rivlin) modulus ran to zero is a failed
     fit (exit 1), not a material card: an untared 2.5 N load-cell offset with --no-loop had
     written mu = 6.7e-14 Pa with exit 0 (its warnings said why; they are the message now)."""
-    import re
-    mus = [float(v) for k, v in params.items() if re.fullmatch(r"(mu\d*|c\d+)_pa", k) and isinstance(v, (int, float))]
-    if mus and max(abs(m) for m in mus) < MIN_MODULUS_PA:
+    mus = _moduli(params)
+    if _all_moduli_zero(params):
         why = "; ".join(w["message"] for w in warnings if w["code"] not in ("parameter-undetermined",
                                                                            "interval-spans-zero",
                                                                            "parameter-correlation"))
@@ -1046,7 +1057,9 @@ def run(inputs: Sequence[str | os.PathLike], *, out: str | os.PathLike, stress_s
                                   path=paths[0])
         boundary_said = (_declared_boundary_check(final, data, width, width_csv)
                          if width is not None and "boundary" in explicit and kind == "logs" else None)
-        if cfg.bootstrap:
+        if cfg.bootstrap and not _all_moduli_zero(final.params):
+            # (a fit whose every modulus ran to zero fails below, with its warnings: its 200
+            # refits had cost a tension test 17 s of 27 before the error)
             # one refit per resample: seconds on a short log, many minutes on a long record with
             # a Prony series and compliance; a bar on a terminal says where it is
             from tqdm import tqdm
