@@ -80,6 +80,32 @@ def timed(fn: Callable[[], Any], repeats: int = 1, warmup: int = 0) -> tuple[dic
     return {"min_s": s[0], "median_s": s[len(s) // 2], "all_s": times, "cpu_min_s": min(cpus)}, out
 
 
+def interleaved(fns: dict[str, Callable[[], Any]], repeats: int = 1,
+                warmup: dict[str, int] | None = None) -> tuple[dict[str, dict], dict[str, Any]]:
+    """:func:`timed` for several functions whose speeds are compared, their timed runs taken in
+    turn (``a b c a b c ...``) after each one's ``warmup`` runs: a ratio of two minima is then
+    taken under the same machine state, where timing one side's runs minutes after the other's
+    let the machine's drift between them enter the ratio (on this VM the same code ran 250 and
+    400 frames/s an hour apart).  Returns (name -> timing dict, name -> last result)."""
+    for name, fn in fns.items():
+        for _ in range((warmup or {}).get(name, 0)):
+            fn()
+    times: dict[str, list] = {k: [] for k in fns}
+    cpus: dict[str, list] = {k: [] for k in fns}
+    out: dict[str, Any] = {}
+    for _ in range(max(1, repeats)):
+        for name, fn in fns.items():
+            c0, t0 = time.process_time(), time.perf_counter()
+            out[name] = fn()
+            times[name].append(time.perf_counter() - t0)
+            cpus[name].append(time.process_time() - c0)
+    res = {}
+    for name in fns:
+        s = sorted(times[name])
+        res[name] = {"min_s": s[0], "median_s": s[len(s) // 2], "all_s": times[name], "cpu_min_s": min(cpus[name])}
+    return res, out
+
+
 @dataclass
 class ChildRun:
     """A finished child process: wall time, CPU time, peak resident memory, exit status, output."""

@@ -22,7 +22,8 @@ Rows
    one is about 7x slower on these frames).  Both are checked against the twin's truth
    (visible markers found within 1 px).  Each side's fastest timed run counts: bsipipe's seeded
    tracker, its automatic mode and trackpy run three times each (``--quick``: once), after a
-   warm-up.  Target: bsipipe at least 30x trackpy's frames per second.  The automatic mode searches the whole frame for new markers only every
+   warm-up, in turn (seeded, automatic, trackpy, seeded, ...: :func:`bench.common.interleaved`),
+   so each ratio compares runs made under the same machine state.  Target: bsipipe at least 30x trackpy's frames per second.  The automatic mode searches the whole frame for new markers only every
    ``sweep_every_frames`` frames (default 20, and in the first and last frames) and each
    track in its own window in between; its row's note also gives the speed and recall with a
    whole-frame search in every frame (``sweep_every_frames=1``), as trackpy does.
@@ -62,7 +63,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import CACHE, OUT, ROOT, Row, bsipipe_exe, fmt_bytes, fmt_s, run_child, timed
+from .common import CACHE, OUT, ROOT, Row, bsipipe_exe, fmt_bytes, fmt_s, interleaved, run_child, timed
 
 VIEWS = ("cam1", "cam2")
 N_FRAMES = 200
@@ -218,11 +219,35 @@ def bench_detect_track(src: Path, quick: bool, say=print) -> tuple[list[Row], di
     det: dict = {"n_frames_per_view": n, "frame_shape": list(frames[VIEWS[0]][0].shape)}
 
     rows = []
-    t_seed, res_seed = timed(lambda: _bsipipe_track(frames, seeds, auto=False), repeats=1 if quick else 3,
-                             warmup=1)
-    # the automatic mode warmed up as the seeded one is (its first run in a process pays one-time
-    # costs: 1.08 s against 0.44 s after it), and timed three times (its runs vary by a third)
-    t_auto, res_auto = timed(lambda: _bsipipe_track(frames, seeds, auto=True), repeats=1 if quick else 3, warmup=1)
+    reps = 1 if quick else 3
+    runs = {"seeded": lambda: _bsipipe_track(frames, seeds, auto=False),
+            "auto": lambda: _bsipipe_track(frames, seeds, auto=True)}
+    # both modes warmed up (a mode's first run in a process pays one-time costs: the automatic
+    # mode's 1.08 s against 0.44 s after it)
+    warm = {"seeded": 1, "auto": 1}
+    try:
+        import trackpy as tp
+    except ImportError as e:
+        tp, tp_missing = None, e
+    if tp is not None:
+        tp.quiet()
+        minmass = {v: _trackpy_minmass(tp, frames[v][0], seeds[seeds["view"] == v][["x_px", "y_px"]].to_numpy())
+                   for v in VIEWS}
+        # trackpy's fast engine: locate's engine="auto" takes numba when it is installed
+        if importlib.util.find_spec("numba") is not None:
+            engine = "numba"
+        else:
+            engine = "python: numba not installed, trackpy's slow engine (about 7x slower here)"
+        # warm-up, not timed: numba compiles locate's kernels on the first call (done above by
+        # the minmass tuning) and link's on the first link
+        tp.link(pd.concat([tp.locate(frames[VIEWS[0]][k], TP_DIAMETER, invert=True, minmass=minmass[VIEWS[0]])
+                           .assign(frame=k) for k in range(2)], ignore_index=True), TP_SEARCH_RANGE, memory=TP_MEMORY)
+        runs["trackpy"] = lambda: _trackpy_track(tp, frames, minmass)
+    # the timed runs of bsipipe's two modes and trackpy's in turn, the fastest of each counting
+    # (load only adds time): the ratios compare runs made under the same machine state
+    tm, res = interleaved(runs, repeats=reps, warmup=warm)
+    t_seed, t_auto = tm["seeded"], tm["auto"]
+    res_seed, res_auto = res["seeded"], res["auto"]
     acc = {"seeded": _recall(res_seed, truth), "auto": _recall(res_auto, truth)}
     fps_seed = n_total / t_seed["min_s"]
     fps_auto = n_total / t_auto["min_s"]
@@ -248,28 +273,13 @@ def bench_detect_track(src: Path, quick: bool, say=print) -> tuple[list[Row], di
         say(f"  bsipipe seeded on all {n_all} frames: {n_all / t_all['min_s']:.1f} frames/s")
         del every
 
-    try:
-        import trackpy as tp
-    except ImportError as e:
-        note = f"trackpy cannot run ({e}): pip install trackpy"
+    if tp is None:
+        note = f"trackpy cannot run ({tp_missing}): pip install trackpy"
         for name, fps in (("seeded", fps_seed), ("no seeds", fps_auto)):
             rows.append(Row(f"track {name}: detect+track vs trackpy", f"{fps:.1f} frames/s", "trackpy: not installed",
                             None, "", ">= 30x", None, note=note))
         return rows, det
-    tp.quiet()
-    minmass = {v: _trackpy_minmass(tp, frames[v][0], seeds[seeds["view"] == v][["x_px", "y_px"]].to_numpy())
-               for v in VIEWS}
-    # trackpy's fast engine: locate's engine="auto" takes numba when it is installed
-    if importlib.util.find_spec("numba") is not None:
-        engine = "numba"
-    else:
-        engine = "python: numba not installed, trackpy's slow engine (about 7x slower here)"
-    # warm-up, not timed: numba compiles locate's kernels on the first call (done above by
-    # the minmass tuning) and link's on the first link
-    tp.link(pd.concat([tp.locate(frames[VIEWS[0]][k], TP_DIAMETER, invert=True, minmass=minmass[VIEWS[0]])
-                       .assign(frame=k) for k in range(2)], ignore_index=True), TP_SEARCH_RANGE, memory=TP_MEMORY)
-    # as many timed runs as bsipipe's automatic mode, the fastest counting for both (load only adds time)
-    t_tp, res_tp = timed(lambda: _trackpy_track(tp, frames, minmass), repeats=1 if quick else 3)
+    t_tp, res_tp = tm["trackpy"], res["trackpy"]
     fps_tp = n_total / t_tp["min_s"]
     hits, per_frame = [], []
     for v in VIEWS:
