@@ -68,25 +68,18 @@ def timed(fn: Callable[[], Any], repeats: int = 1, warmup: int = 0) -> tuple[dic
     The minimum wall time is the figure to compare (load only ever adds time); the median
     is kept too, and the process CPU time (all threads), which load inflates far less.
     """
-    for _ in range(warmup):
-        fn()
-    times, cpus, out = [], [], None
-    for _ in range(max(1, repeats)):
-        c0, t0 = time.process_time(), time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-        cpus.append(time.process_time() - c0)
-    s = sorted(times)
-    return {"min_s": s[0], "median_s": s[len(s) // 2], "all_s": times, "cpu_min_s": min(cpus)}, out
+    tm, out = interleaved({"fn": fn}, repeats, {"fn": warmup})
+    return tm["fn"], out["fn"]
 
 
 def interleaved(fns: dict[str, Callable[[], Any]], repeats: int = 1,
                 warmup: dict[str, int] | None = None) -> tuple[dict[str, dict], dict[str, Any]]:
-    """:func:`timed` for several functions whose speeds are compared, their timed runs taken in
-    turn (``a b c a b c ...``) after each one's ``warmup`` runs: a ratio of two minima is then
-    taken under the same machine state, where timing one side's runs minutes after the other's
-    let the machine's drift between them enter the ratio (on this VM the same code ran 250 and
-    400 frames/s an hour apart).  Returns (name -> timing dict, name -> last result)."""
+    """:func:`timed` (which is this for one function) for several functions whose speeds are
+    compared, their timed runs taken in turn (``a b c a b c ...``) after each one's ``warmup``
+    runs: a ratio of two minima is then taken under the same machine state, where timing one
+    side's runs minutes after the other's let the machine's drift between them enter the ratio
+    (on this VM the same code ran 250 and 400 frames/s an hour apart).  Returns (name -> timing
+    dict, name -> last result)."""
     for name, fn in fns.items():
         for _ in range((warmup or {}).get(name, 0)):
             fn()

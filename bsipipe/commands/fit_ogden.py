@@ -808,8 +808,8 @@ def _no_modulus(params: dict, warnings: list[dict], path) -> None:
     """A fit whose every Ogden (or neo-Hookean, Mooney-Rivlin) modulus ran to zero is a failed
     fit (exit 1), not a material card: an untared 2.5 N load-cell offset with --no-loop had
     written mu = 6.7e-14 Pa with exit 0 (its warnings said why; they are the message now)."""
-    mus = _moduli(params)
     if _all_moduli_zero(params):
+        mus = _moduli(params)
         why = "; ".join(w["message"] for w in warnings if w["code"] not in ("parameter-undetermined",
                                                                            "interval-spans-zero",
                                                                            "parameter-correlation"))

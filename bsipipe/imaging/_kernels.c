@@ -84,6 +84,23 @@ static int indices_within(const Py_ssize_t *idx, Py_ssize_t k, Py_ssize_t lo, Py
     return 0;
 }
 
+/* The index array ``o`` (intp) into ix[0], its length into *count, every index checked to lie
+ * in [lo, hi): the array whose length sizes a kernel's other arguments.  -1 with the exception
+ * set (and nothing held) on failure. */
+static int acquire_index(PyObject *o, const char *name, Py_ssize_t lo, Py_ssize_t hi, Py_buffer *ix,
+                         Py_ssize_t *count)
+{
+    const Arg a[] = {{o, IDX, -1, 0, 0, name}};
+    if (acquire(a, 1, ix) < 0)
+        return -1;
+    *count = ix[0].len / IDX;
+    if (indices_within((const Py_ssize_t *)ix[0].buf, *count, lo, hi, name) < 0) {
+        release(ix, 1);
+        return -1;
+    }
+    return 0;
+}
+
 /* LAPACK dgesv's method on one k x k system: LU with partial pivoting (idamax's choice: the
  * first largest |a| of the column, NaN never), then the two triangular solves; in place (A
  * row-major k x k, b overwritten by the solution).  Returns 1 where a pivot is exactly zero
@@ -144,10 +161,8 @@ static PyObject *centroid(PyObject *self, PyObject *args)
                           &o_c, &o_m, &o_e))
         return NULL;
     Py_buffer ix[1], b[7];
-    const Arg idx[] = {{o_sup, IDX, -1, 0, 0, "support"}};
-    if (acquire(idx, 1, ix) < 0)
+    if (acquire_index(o_sup, "support", 0, PP, ix, &K) < 0)
         return NULL;
-    K = ix[0].len / IDX;
     const Arg arr[] = {{o_s, 8, n * PP, 0, 0, "s"}, {o_X, 8, K, 0, 0, "X"}, {o_Y, 8, K, 0, 0, "Y"},
                        {o_w0, 8, K, 0, 0, "w0"}, {o_c, 8, 2 * n, 1, 0, "c"}, {o_m, 8, n, 1, 0, "m"},
                        {o_e, 8, n, 1, 0, "elong"}};
@@ -158,8 +173,6 @@ static PyObject *centroid(PyObject *self, PyObject *args)
     PyObject *ret = NULL;
     double *work = NULL;
     const Py_ssize_t *sup = (const Py_ssize_t *)ix[0].buf;
-    if (indices_within(sup, K, 0, PP, "support") < 0)
-        goto done;
     work = (double *)malloc(sizeof(double) * (size_t)(K > 0 ? 4 * K : 1));
     if (!work) {
         PyErr_NoMemory();
@@ -280,10 +293,8 @@ static PyObject *gaussian_fit(PyObject *self, PyObject *args)
                           &sigma0, &lim_sig, &n_iter, &o_P))
         return NULL;
     Py_buffer ix[1], b[6];
-    const Arg idx[] = {{o_sup, IDX, -1, 0, 0, "support"}};
-    if (acquire(idx, 1, ix) < 0)
+    if (acquire_index(o_sup, "support", 0, PP, ix, &K) < 0)
         return NULL;
-    K = ix[0].len / IDX;
     const Arg arr[] = {{o_s, 8, n * PP, 0, 0, "s"}, {o_X, 8, K, 0, 0, "X"}, {o_Y, 8, K, 0, 0, "Y"},
                        {o_start, 8, 2 * n, 0, 0, "start"}, {o_valid, 1, n * PP, 0, 1, "valid"},
                        {o_P, 8, 5 * n, 1, 0, "P"}};
@@ -294,8 +305,6 @@ static PyObject *gaussian_fit(PyObject *self, PyObject *args)
     PyObject *ret = NULL;
     double *work = NULL;
     const Py_ssize_t *sup = (const Py_ssize_t *)ix[0].buf;
-    if (indices_within(sup, K, 0, PP, "support") < 0)
-        goto done;
     /* per patch: S, win, current (ex, ey, r2, g, res), candidate (ex, ey, r2, g, res); per
      * patch scalars: lam, cost, step (5) */
     const size_t per = (size_t)(K > 0 ? K : 1);
@@ -474,10 +483,8 @@ static PyObject *plane_removed(PyObject *self, PyObject *args)
                           &tiny, &o_out))
         return NULL;
     Py_buffer ix[1], b[5];
-    const Arg idx[] = {{o_ring, IDX, -1, 0, 0, "ring"}};
-    if (acquire(idx, 1, ix) < 0)
+    if (acquire_index(o_ring, "ring", 0, PP, ix, &R) < 0)
         return NULL;
-    R = ix[0].len / IDX;
     const Arg arr[] = {{o_p, 8, n * PP, 0, 0, "p"}, {o_dx, 8, PP, 0, 0, "dx"}, {o_dy, 8, PP, 0, 0, "dy"},
                        {o_valid, 1, n * PP, 0, 1, "valid"}, {o_out, 8, n * PP, 1, 0, "out"}};
     if (acquire(arr, 5, b) < 0) {
@@ -488,8 +495,6 @@ static PyObject *plane_removed(PyObject *self, PyObject *args)
     PyObject *ret = NULL;
     double *work = NULL;
     const Py_ssize_t *ring = (const Py_ssize_t *)ix[0].buf;
-    if (indices_within(ring, R, 0, PP, "ring") < 0)
-        goto done;
     const size_t per = (size_t)(R > 0 ? R : 1);
     work = (double *)malloc(sizeof(double) * (per * 4 + (size_t)n * 3) + per * 3);
     if (!work) {

@@ -18,8 +18,9 @@ Bouguet's Camera Calibration Toolbox for MATLAB (``.mat``: ``Calib_Results_stere
 Camera 1 / left is the first ``--view`` of the calibrated pair, camera 2 / right the second.
 ``T`` is in the units the tool was given the target in: millimetres expected (bsipipe's
 ``T_mm``); a baseline under :data:`MIN_BASELINE_MM` (a pair calibrated in metres, or in squares
-of its board) is refused, in any format.  Image sizes missing from the file are taken from the frames (``shapes``).  The
-files carry no reprojection RMS: ``stereo.rms_px`` is None (``track`` then assumes one).
+of its board) is refused, in any format.  Image sizes missing from the file are taken from the
+frames (``shapes``).  The files carry no reprojection RMS: ``stereo.rms_px`` is None (``track``
+then assumes one).
 """
 
 from __future__ import annotations
